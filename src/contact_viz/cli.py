@@ -1,0 +1,338 @@
+"""The `contact-viz` command line: thin wrappers over the library.
+
+Heavy modules (open3d for `synth`, rerun for the viewer, torch for the baseline) are imported
+inside the commands that use them, so `contact-viz extract` never pays for them at start-up.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Visual debugger for tool-tissue contact detection from stereo depth.",
+)
+
+
+def _fail(message: str) -> None:
+    typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(code=2)
+
+
+def _parse_size(size: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        _fail(f"--size must look like WIDTHxHEIGHT, e.g. 1920x1080; got {size!r}")
+    if width < 32 or height < 32:
+        _fail(f"--size must be at least 32x32, got {size!r}")
+    return width, height
+
+
+def _progress():
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
+
+    class _Rate(TextColumn):
+        def render(self, task):  # frames per second over the run so far
+            elapsed = task.elapsed or 0.0
+            return f"{task.completed / elapsed:5.1f} frames/s" if elapsed > 0 else "  --- frames/s"
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), _Rate(""),
+                    TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
+
+
+def _inside(path: Path, directory: Path) -> bool:
+    try:
+        path.resolve().relative_to(directory.resolve())
+        return True
+    except ValueError:
+        return False
+
+
+@app.command()
+def extract(
+    session_dir: Annotated[Path, typer.Argument(help="Session directory (see README: session format).")],
+    output: Annotated[Optional[Path], typer.Option("-o", "--output", help="features CSV to write "
+                      "[default: results/<session name>/features.csv]")] = None,
+    object_id: Annotated[Optional[int], typer.Option(help="Use only this object id of palettized masks.")] = None,
+    contact_force: Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")] = 2.0,
+    params_file: Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields "
+                           "(e.g. from recipes/grid_search.py).")] = None,
+) -> None:
+    """Compute the minimum-distance patch of every frame and write one row per frame."""
+    from .errors import SessionError
+    from .extract import BadFrameWarning, extract_features, run_config, write_features
+    from .params import LabelParams, PatchParams, from_dict
+    from .session import open_session
+
+    try:
+        params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
+        label_params = LabelParams(contact_force_n=contact_force)
+    except ValueError as exc:
+        _fail(str(exc))
+    try:
+        session = open_session(session_dir, object_id=object_id, label_params=label_params)
+    except SessionError as exc:
+        _fail(str(exc))
+    output = output or Path("results") / session.name / "features.csv"
+    if _inside(output, session.root):
+        _fail(f"{output}: refusing to write inside the session directory {session.root}; choose another -o")
+
+    bad: list[str] = []
+    with warnings.catch_warnings(record=True) as caught, _progress() as progress:
+        warnings.simplefilter("always", BadFrameWarning)
+        task = progress.add_task(f"extract {session.name}", total=len(session))
+        rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done))
+    for w in caught:
+        if issubclass(w.category, BadFrameWarning):
+            bad.append(str(w.message))
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    for message in bad:
+        typer.secho(f"warning: {message}", fg=typer.colors.YELLOW, err=True)
+    write_features(rows, output, run_config(session, params, label_params))
+    found = sum(1 for r in rows if r["distance_m"] != "")
+    typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {len(bad)} unreadable")
+    if len(bad) == len(rows):
+        _fail(f"no frame of {session.root} could be read")
+
+
+def _load_params(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: expected a JSON object of PatchParams fields ({exc})") from None
+    if isinstance(data, dict) and "patch_params" in data:
+        data = data["patch_params"]
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object of PatchParams fields")
+    return data
+
+
+@app.command()
+def synth(
+    out_dir: Annotated[Path, typer.Argument(help="Directory to create the session in (must be new or empty).")],
+    phantom: Annotated[str, typer.Option(help="Tissue shape: cup, kidney, liver or glove (pulling task).")] = "cup",
+    frames: Annotated[int, typer.Option(min=1, help="Number of frames.")] = 120,
+    seed: Annotated[int, typer.Option(help="Random seed (same seed and options = same files).")] = 0,
+    size: Annotated[str, typer.Option(help="Image size WIDTHxHEIGHT.")] = "1920x1080",
+    overwrite: Annotated[bool, typer.Option(help="Replace the files of an existing session there.")] = False,
+) -> None:
+    """Make a synthetic session with known truth (stereo renders, masks, depth, force, truth.csv)."""
+    from .synth import PHANTOMS, SynthParams, generate_session
+
+    if phantom not in PHANTOMS:
+        _fail(f"--phantom must be one of {', '.join(PHANTOMS)}; got {phantom!r}")
+    width, height = _parse_size(size)
+    params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height)
+    with _progress() as progress:
+        task = progress.add_task(f"synth {phantom}", total=frames)
+        try:
+            path = generate_session(out_dir, params, overwrite=overwrite,
+                                    progress=lambda done, total: progress.update(task, completed=done))
+        except (FileExistsError, ValueError) as exc:
+            _fail(str(exc))
+    typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}")
+
+
+class _Features:
+    """Features of one session for fit / evaluate / predict: from a session dir (cached extract)."""
+
+    def __init__(self, name: str, frames: list[str], signal, labels) -> None:
+        self.name, self.frames, self.signal, self.labels = name, frames, signal, labels
+
+
+def _load_features(sources: list[Path], params, label_params, object_id, cache_dir, model=None) -> list[_Features]:
+    """Session directories -> features (extracted with ``params``, cached); or features CSV files
+    written by `contact-viz extract` (their configuration must match ``model``'s parameters)."""
+    from .errors import SessionError
+    from .extract import cached_features, feature_arrays, read_features
+    from .model_file import check_params
+    from .params import PatchParams, from_dict
+    from .session import open_session
+
+    out = []
+    for source in sources:
+        try:
+            if source.is_file():
+                config_path = source.with_name(source.name + ".json")
+                if not config_path.exists():
+                    _fail(f"{config_path}: missing; a features CSV needs the configuration `extract` writes beside it")
+                found = from_dict(PatchParams, json.loads(config_path.read_text())["patch_params"])
+                if model is not None:
+                    check_params(model, found, str(source))
+                elif found != params:
+                    check_params_against(params, found, str(source))
+                rows = read_features(source)
+                name = json.loads(config_path.read_text())["session"]["name"]
+            else:
+                session = open_session(source, object_id=object_id, label_params=label_params)
+                name = session.name
+                with _progress() as progress:
+                    task = progress.add_task(f"features {name}", total=len(session))
+                    rows, cached = cached_features(
+                        session, params, label_params=label_params, cache_dir=cache_dir,
+                        progress=lambda done: progress.update(task, completed=done))
+                    progress.update(task, completed=len(session), description=f"features {name}"
+                                    + (" (cached)" if cached else ""))
+        except (SessionError, ValueError, KeyError) as exc:
+            _fail(str(exc))
+        signal, labels = feature_arrays(rows)
+        out.append(_Features(name, [str(r["frame"]) for r in rows], signal, labels))
+    names = [f.name for f in out]
+    if len(set(names)) != len(names):
+        _fail(f"session names must be distinct (set \"name\" in session.json); got {names}")
+    return out
+
+
+def check_params_against(expected, found, where: str) -> None:
+    from .model_file import params_mismatch
+
+    diff = params_mismatch(expected, found)
+    raise ValueError(f"{where}: features were computed with other patch parameters ({'; '.join(diff)})")
+
+
+CacheDir = Annotated[Optional[Path], typer.Option(help="Feature cache [default: ~/.cache/contact-viz].")]
+ObjectId = Annotated[Optional[int], typer.Option(help="Use only this object id of palettized masks.")]
+
+
+@app.command()
+def fit(
+    train_sessions: Annotated[list[Path], typer.Argument(help="Labelled training session directories (K >= 2).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="model.json to write.")] = Path("model.json"),
+    params_file: Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields.")] = None,
+    contact_force: Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")] = 2.0,
+    object_id: ObjectId = None,
+    cache_dir: CacheDir = None,
+) -> None:
+    """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions."""
+    from .hmm import LosoEnsemble
+    from .model_file import ContactModel, save_model
+    from .params import LabelParams, PatchParams, from_dict
+
+    try:
+        params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
+        label_params = LabelParams(contact_force_n=contact_force)
+    except ValueError as exc:
+        _fail(str(exc))
+    if len(train_sessions) < 2:
+        _fail(f"fit needs at least 2 training sessions for leave-one-session-out, got {len(train_sessions)}")
+    features = _load_features(train_sessions, params, label_params, object_id, cache_dir)
+    try:
+        ensemble = LosoEnsemble().fit([f.signal for f in features], [f.labels for f in features],
+                                      session_names=[f.name for f in features])
+    except ValueError as exc:
+        _fail(str(exc))
+    model = ContactModel(
+        ensemble=ensemble, patch_params=params, label_params=label_params,
+        training_sessions=tuple({"name": f.name, "path": str(p.resolve()), "frames": len(f.frames)}
+                                for f, p in zip(features, train_sessions)),
+    )
+    save_model(model, output)
+    typer.echo(f"{output}: {len(features)} LOSO models, threshold {model.threshold:.4f}")
+    for hmm, name in zip(ensemble.models_, ensemble.session_names_):
+        m, v, a = hmm.means_, hmm.vars_, hmm.transmat_
+        typer.echo(f"  without {name}: means {m[0]:.3f} / {m[1]:.3f}, sd {v[0] ** 0.5:.3f} / {v[1] ** 0.5:.3f}, "
+                   f"stay {a[0, 0]:.3f} / {a[1, 1]:.3f}")
+
+
+def _model_and_features(model_path: Path, sources: list[Path], object_id, cache_dir):
+    from .model_file import load_model
+
+    try:
+        model = load_model(model_path)
+    except ValueError as exc:
+        _fail(str(exc))
+    features = _load_features(sources, model.patch_params, model.label_params, object_id, cache_dir, model=model)
+    return model, features
+
+
+@app.command()
+def evaluate(
+    model_path: Annotated[Path, typer.Argument(metavar="MODEL", help="model.json from `contact-viz fit`.")],
+    test_sessions: Annotated[list[Path], typer.Argument(help="Labelled test session dirs or features CSVs.")],
+    per_frame: Annotated[Optional[Path], typer.Option(help="CSV of session, frame, signal, posterior, "
+                         "predicted, label for every frame.")] = None,
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Metrics as JSON.")] = None,
+    markdown: Annotated[bool, typer.Option(help="Also print the table as Markdown.")] = False,
+    latex: Annotated[bool, typer.Option(help="Also print the table as LaTeX (booktabs).")] = False,
+    object_id: ObjectId = None,
+    cache_dir: CacheDir = None,
+) -> None:
+    """Score held-out sessions: the Table-1 metrics per session and their macro mean."""
+    import csv
+
+    from .atomic import atomic_write
+    from .evaluation import PER_FRAME_COLUMNS, metrics_table, per_frame_rows, score_session
+    from .metrics import format_table
+
+    model, features = _model_and_features(model_path, test_sessions, object_id, cache_dir)
+    try:
+        scores = [score_session(model.predict_proba, model.threshold, f.name, f.frames, f.signal, f.labels)
+                  for f in features]
+        table = metrics_table(scores, model.threshold)
+    except ValueError as exc:
+        _fail(str(exc))
+    typer.echo(format_table(table, style="text"))
+    for note in [n for row in table.values() for n in row.get("notes", [])]:
+        typer.echo(f"note: {note}")
+    if markdown:
+        typer.echo("\n" + format_table(table, style="markdown"))
+    if latex:
+        typer.echo("\n" + format_table(table, style="latex"))
+    if per_frame is not None:
+        with atomic_write(per_frame, newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=PER_FRAME_COLUMNS)
+            writer.writeheader()
+            writer.writerows(per_frame_rows(scores))
+    if json_out is not None:
+        from . import __version__
+        from .params import to_dict
+
+        with atomic_write(json_out) as handle:
+            json.dump({"contact_viz_version": __version__, "model": str(model_path.resolve()),
+                       "threshold": model.threshold, "patch_params": to_dict(model.patch_params),
+                       "metrics": table}, handle, indent=2)
+            handle.write("\n")
+
+
+@app.command()
+def predict(
+    model_path: Annotated[Path, typer.Argument(metavar="MODEL", help="model.json from `contact-viz fit`.")],
+    session_dir: Annotated[Path, typer.Argument(help="Session directory (labels not needed).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="CSV to write.")] = Path("predictions.csv"),
+    object_id: ObjectId = None,
+    cache_dir: CacheDir = None,
+) -> None:
+    """Contact posteriors for a session, with or without labels."""
+    import csv
+
+    from .atomic import atomic_write
+    from .evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
+
+    model, (features,) = _model_and_features(model_path, [session_dir], object_id, cache_dir)
+    scores = score_session(model.predict_proba, model.threshold, features.name, features.frames,
+                           features.signal, features.labels)
+    with atomic_write(output, newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=PER_FRAME_COLUMNS)
+        writer.writeheader()
+        writer.writerows(per_frame_rows([scores]))
+    typer.echo(f"{output}: {len(scores.frames)} frames, {int(scores.predicted.sum())} predicted contact "
+               f"(threshold {model.threshold:.4f})")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,17 @@
+"""Exceptions raised for malformed input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class SessionError(ValueError):
+    """A session file or directory is missing or malformed.
+
+    The message always names the offending path and what was expected there.
+    """
+
+    def __init__(self, path: str | Path, expected: str) -> None:
+        self.path = Path(path)
+        self.expected = expected
+        super().__init__(f"{self.path}: {expected}")

@@ -1,0 +1,194 @@
+"""Per-frame features of a session: the minimum-distance patch of every frame, as table rows.
+
+This module joins the session reader and the patch computation; it does no drawing and no
+logging to Rerun. :func:`iter_frame_results` is the streaming core shared with the viewer;
+:func:`extract_features` collects the rows; :func:`write_features` saves them atomically with
+the resolved configuration beside them.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .atomic import atomic_write
+from .params import LabelParams, PatchParams, to_dict
+from .patch import PatchResult, compute_patch
+from .session import BadFrame, Frame, Session
+
+REASON_BAD_FRAME = "bad_frame"
+
+# Columns of features.csv, in order. Units are in the names; see the README for each.
+FEATURE_COLUMNS = (
+    "frame", "timestamp", "distance_m", "signal", "patch_x", "patch_y", "force_n", "label",
+    "label_source", "reason", "score_m", "tool_depth_m", "n_candidates", "shaft_width_px",
+    "band_width_px", "invalid_depth_fraction", "tool_area_px", "detail",
+)
+
+
+class BadFrameWarning(UserWarning):
+    """A frame could not be read; it was skipped and the run went on."""
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One processed frame: the decoded frame (or why it could not be read) and its patch."""
+
+    frame: Frame | BadFrame
+    patch: PatchResult | None  # None for a BadFrame
+
+    @property
+    def index(self) -> int:
+        return self.frame.index
+
+
+def iter_frame_results(
+    session: Session,
+    params: PatchParams = PatchParams(),
+    *,
+    layers: Sequence[str] = ("mask", "depth"),
+    indices: Sequence[int] | None = None,
+) -> Iterator[FrameResult]:
+    """Decode and process the frames of ``session`` one at a time, in order.
+
+    A frame that cannot be read is yielded with ``patch=None`` and a :class:`BadFrameWarning`
+    is issued; the iteration goes on. ``layers`` must include "mask" and "depth".
+    """
+    needed = {"mask", "depth"}
+    if not needed <= set(layers):
+        raise ValueError(f"layers must include {sorted(needed)}, got {list(layers)}")
+    for item in session.iter_frames(layers=tuple(layers), indices=indices):
+        if isinstance(item, BadFrame):
+            warnings.warn(f"frame {item.stem} skipped: {item.reason}", BadFrameWarning, stacklevel=2)
+            yield FrameResult(item, None)
+        else:
+            yield FrameResult(item, compute_patch(item.depth_m, item.tool_mask, params))
+
+
+def _blank(value: float) -> float | str:
+    return "" if value is None or (isinstance(value, float) and math.isnan(value)) else value
+
+
+def feature_row(session: Session, result: FrameResult) -> dict[str, object]:
+    """The features.csv row of one processed frame (values ready for csv; '' = empty)."""
+    i = result.index
+    label = int(session.labels[i])
+    row: dict[str, object] = {
+        "frame": result.frame.stem,
+        "timestamp": f"{session.timestamps_s[i]:.6f}",
+        "force_n": _blank(float(session.force_n[i])),
+        "label": "" if label < 0 else label,
+        "label_source": str(session.label_source[i]),
+    }
+    patch = result.patch
+    if patch is None:
+        row.update(reason=REASON_BAD_FRAME, detail=result.frame.reason)
+        return {c: row.get(c, "") for c in FEATURE_COLUMNS}
+    row.update(
+        distance_m=_blank(patch.distance_m),
+        signal=_blank(patch.signal),
+        patch_x="" if patch.center_xy is None else patch.center_xy[0],
+        patch_y="" if patch.center_xy is None else patch.center_xy[1],
+        reason=patch.reason or "",
+        score_m=_blank(patch.score_m),
+        tool_depth_m=_blank(patch.tool_depth_m),
+        n_candidates=patch.n_candidates,
+        shaft_width_px=f"{patch.shaft_width_px:.2f}",
+        band_width_px=f"{patch.band_width_px:.2f}",
+        invalid_depth_fraction=_blank(round(patch.invalid_depth_fraction, 6)),
+        tool_area_px=int(np.count_nonzero(result.frame.tool_mask)),
+    )
+    return {c: row.get(c, "") for c in FEATURE_COLUMNS}
+
+
+def extract_features(
+    session: Session,
+    params: PatchParams = PatchParams(),
+    *,
+    indices: Sequence[int] | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> list[dict[str, object]]:
+    """One features row per frame of ``session`` (bad frames included, with reason ``bad_frame``).
+
+    ``progress`` is called with the number of frames done after each frame.
+    """
+    rows = []
+    for done, result in enumerate(iter_frame_results(session, params, indices=indices), start=1):
+        rows.append(feature_row(session, result))
+        if progress is not None:
+            progress(done)
+    return rows
+
+
+def run_config(session: Session, params: PatchParams, label_params: LabelParams) -> dict[str, object]:
+    """The resolved configuration saved beside every result."""
+    return {
+        "contact_viz_version": __version__,
+        "session": {"path": str(session.root.resolve()), "name": session.name, "frames": len(session)},
+        "patch_params": to_dict(params),
+        "label_params": to_dict(label_params),
+    }
+
+
+def write_features(rows: Sequence[dict[str, object]], path: str | Path, config: dict[str, object]) -> Path:
+    """Write ``rows`` to ``path`` (CSV) and ``config`` to ``<path>.json``, each atomically."""
+    path = Path(path)
+    with atomic_write(path, newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=FEATURE_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    config_path = path.with_name(path.name + ".json")
+    with atomic_write(config_path) as handle:
+        json.dump(config, handle, indent=2)
+        handle.write("\n")
+    return path
+
+
+def read_features(path: str | Path) -> list[dict[str, str]]:
+    """Read a features.csv written by :func:`write_features` (values as strings)."""
+    path = Path(path)
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        missing = [c for c in ("frame", "signal", "label") if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path}: not a contact-viz features file (missing columns {missing})")
+        return list(reader)
+
+
+def cached_features(
+    session: Session,
+    params: PatchParams = PatchParams(),
+    *,
+    label_params: LabelParams = LabelParams(),
+    cache_dir: str | Path | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[list[dict[str, object]], bool]:
+    """Features of ``session``, reused from the cache when its files and the parameters are unchanged.
+
+    Returns ``(rows, from_cache)``. The cache lives outside the session directory
+    (:func:`contact_viz.cache.default_cache_dir`, or ``cache_dir``).
+    """
+    from .cache import cache_path
+
+    key = {"patch_params": to_dict(params), "label_params": to_dict(label_params), "object_id": session.object_id}
+    path = cache_path(session.root, "features", key, ".csv", cache_dir)
+    if path.exists():
+        return read_features(path), True
+    rows = extract_features(session, params, progress=progress)
+    write_features(rows, path, run_config(session, params, label_params))
+    return [{k: str(v) for k, v in r.items()} for r in rows], False
+
+
+def feature_arrays(rows: Sequence[dict[str, object]]) -> tuple[np.ndarray, np.ndarray]:
+    """The HMM's inputs from feature rows: signal (T,) float64 (NaN = no patch) and labels (T,) int8 (-1 = unknown)."""
+    signal = np.array([float(r["signal"]) if r["signal"] != "" else np.nan for r in rows], dtype=np.float64)
+    labels = np.array([int(r["label"]) if r["label"] != "" else -1 for r in rows], dtype=np.int8)
+    return signal, labels

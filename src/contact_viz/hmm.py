@@ -1,0 +1,465 @@
+"""The minimal supervised two-state Gaussian HMM of the paper (Sec. 2.2) and its LOSO ensemble.
+
+Observation per frame: the scalar signal ``x_t = -log10(max(|d_t|, eps))`` (unit: decades of
+metres, written "dec" below; NaN where a frame had no patch). Hidden states: 0 = no contact,
+1 = contact, each with a Gaussian emission. The six learned parameters are the two means, the
+two variances and the two free transition probabilities; the start distribution is not learned
+but set to the stationary distribution of the fitted transition matrix.
+
+Conventions follow hmmlearn: fitted attributes carry a trailing underscore (``means_``,
+``vars_``, ``transmat_``, ``startprob_``). Unlike hmmlearn, ``predict_proba`` returns the
+*causally filtered* posterior P(contact | x_1..x_t), shape (T,), not the smoothed (T, 2) one.
+
+Everything here is pure computation on arrays: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from contact_viz.params import from_dict as _params_from_dict
+from contact_viz.params import to_dict as _params_to_dict
+
+N_STATES = 2
+NO_CONTACT = 0
+CONTACT = 1
+UNKNOWN_LABEL = -1
+STATE_NAMES = ("no contact", "contact")
+
+
+@dataclass(frozen=True)
+class HMMParams:
+    """Fixed (not learned) settings of the supervised HMM."""
+
+    var_floor: float = 1e-6  # lower bound on each state's emission variance, dec^2 (signal units squared)
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.var_floor, (int, float)) and math.isfinite(self.var_floor) and self.var_floor > 0):
+            raise ValueError(f"HMMParams.var_floor must be a finite number > 0 (dec^2), got {self.var_floor!r}")
+
+
+class NotFittedError(ValueError):
+    """A model was used before ``fit`` (or ``from_dict``)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Input validation
+# --------------------------------------------------------------------------------------------
+
+
+def _check_signal(signal: Any, name: str) -> np.ndarray:
+    """``signal`` as a 1-D float64 array whose values are finite or NaN."""
+    arr = np.asarray(signal)
+    if arr.ndim != 1 or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"{name}: expected a 1-D float array (T,), got shape {arr.shape} dtype {arr.dtype}")
+    arr = arr.astype(np.float64, copy=False)
+    if np.isinf(arr).any():
+        raise ValueError(f"{name}: expected finite values or NaN, found {int(np.isinf(arr).sum())} infinite value(s)")
+    return arr
+
+
+def _check_labels(labels: Any, name: str, length: int) -> np.ndarray:
+    """``labels`` as a 1-D int64 array of values in {-1, 0, 1} with ``length`` entries."""
+    arr = np.asarray(labels)
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{name}: expected a 1-D integer array (T,), got shape {arr.shape} dtype {arr.dtype}")
+    if arr.shape[0] != length:
+        raise ValueError(f"{name}: expected {length} labels (one per signal frame), got {arr.shape[0]}")
+    bad = ~np.isin(arr, (UNKNOWN_LABEL, NO_CONTACT, CONTACT))
+    if bad.any():
+        raise ValueError(f"{name}: expected values in {{-1, 0, 1}}, found {sorted(set(arr[bad].tolist()))[:5]}")
+    return arr.astype(np.int64, copy=False)
+
+
+def _check_model(means: Any, vars: Any, transmat: Any, startprob: Any) -> tuple[np.ndarray, ...]:
+    """Validated float64 copies of the four parameter arrays of a two-state model."""
+    means_a = np.asarray(means, dtype=np.float64)
+    vars_a = np.asarray(vars, dtype=np.float64)
+    trans_a = np.asarray(transmat, dtype=np.float64)
+    start_a = np.asarray(startprob, dtype=np.float64)
+    if means_a.shape != (N_STATES,) or not np.isfinite(means_a).all():
+        raise ValueError(f"means: expected 2 finite values (dec), got {means_a.tolist()}")
+    if vars_a.shape != (N_STATES,) or not (np.isfinite(vars_a).all() and (vars_a > 0).all()):
+        raise ValueError(f"vars: expected 2 finite values > 0 (dec^2), got {vars_a.tolist()}")
+    if (
+        trans_a.shape != (N_STATES, N_STATES)
+        or not np.isfinite(trans_a).all()
+        or (trans_a < 0).any()
+        or not np.allclose(trans_a.sum(axis=1), 1.0, rtol=0, atol=1e-9)
+    ):
+        raise ValueError(f"transmat: expected a 2x2 row-stochastic matrix, got {trans_a.tolist()}")
+    if (
+        start_a.shape != (N_STATES,)
+        or not np.isfinite(start_a).all()
+        or (start_a < 0).any()
+        or not math.isclose(float(start_a.sum()), 1.0, rel_tol=0, abs_tol=1e-9)
+    ):
+        raise ValueError(f"startprob: expected 2 probabilities summing to 1, got {start_a.tolist()}")
+    return means_a, vars_a, trans_a, start_a
+
+
+# --------------------------------------------------------------------------------------------
+# Pure model functions
+# --------------------------------------------------------------------------------------------
+
+
+def stationary_distribution(transmat: Any) -> np.ndarray:
+    """The stationary distribution pi (pi A = pi, sum 1) of a row-stochastic matrix A, shape (n,).
+
+    Solved as the linear system (A^T - I) pi = 0 with one equation replaced by sum(pi) = 1.
+    A reducible chain with a single closed class (e.g. one absorbing state) still has a unique
+    stationary distribution and gets it; a chain with several closed classes (e.g. A = I, no
+    transition between states ever) has none unique, which is a ValueError.
+    """
+    a = np.asarray(transmat, dtype=np.float64)
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or not np.isfinite(a).all():
+        raise ValueError(f"transmat: expected a finite square matrix, got shape {a.shape}")
+    n = a.shape[0]
+    system = a.T - np.eye(n)
+    # the null space of (A^T - I) is one-dimensional exactly when the distribution is unique
+    if np.linalg.matrix_rank(system) != n - 1:
+        raise ValueError(
+            f"transmat {a.tolist()} has no unique stationary distribution (the chain has more than one "
+            "closed class, e.g. no transition between the states was ever observed)"
+        )
+    system[-1, :] = 1.0
+    rhs = np.zeros(n)
+    rhs[-1] = 1.0
+    pi = np.linalg.solve(system, rhs)
+    pi = np.clip(pi, 0.0, None)  # round-off may leave -1e-17 where the exact value is 0
+    return pi / pi.sum()
+
+
+def emission_log_likelihood_ratio(signal: np.ndarray, means: np.ndarray, vars: np.ndarray) -> np.ndarray:
+    """log N(x; m1, v1) - log N(x; m0, v0) per frame, shape (T,), float64; NaN where x is NaN."""
+    x = np.asarray(signal, dtype=np.float64)
+    m0, m1 = float(means[0]), float(means[1])
+    v0, v1 = float(vars[0]), float(vars[1])
+    return -0.5 * math.log(v1 / v0) - (x - m1) ** 2 / (2.0 * v1) + (x - m0) ** 2 / (2.0 * v0)
+
+
+def _log_or_minus_inf(value: float) -> float:
+    return math.log(value) if value > 0.0 else -math.inf
+
+
+def _sigmoid(z: np.ndarray) -> np.ndarray:
+    """1 / (1 + exp(-z)) without overflow; exact 0 / 1 at -inf / +inf."""
+    e = np.exp(-np.abs(z))
+    return np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
+def forward_filter(signal: Any, means: Any, vars: Any, transmat: Any, startprob: Any) -> np.ndarray:
+    """Causal forward filtering: P(contact | x_1..x_t) for every frame t.
+
+    Args:
+        signal: (T,) float, the per-frame signal (dec); NaN = no observation at that frame.
+        means: (2,) emission means of states (no contact, contact), dec.
+        vars: (2,) emission variances, dec^2, > 0.
+        transmat: (2, 2) row-stochastic, transmat[i, j] = P(s_t = j | s_{t-1} = i).
+        startprob: (2,) distribution of s_0.
+
+    Returns:
+        (T,) float64 in [0, 1]. alpha_0 is proportional to pi * e(x_0) and alpha_t to
+        e(x_t) * (A^T alpha_{t-1}), normalised at every step; a NaN frame skips the emission term,
+        so its value is the one-step prediction. The recursion runs on the log-odds
+        z_t = log alpha_t[1] - log alpha_t[0], carrying both p and 1 - p, so extreme
+        observations saturate at exactly 0 or 1 instead of underflowing to NaN. The output at
+        frame t depends on frames 0..t only.
+    """
+    x = _check_signal(signal, "signal")
+    means_a, vars_a, trans_a, start_a = _check_model(means, vars, transmat, startprob)
+    n_frames = x.shape[0]
+    if n_frames == 0:
+        return np.zeros(0, dtype=np.float64)
+    llr = emission_log_likelihood_ratio(x, means_a, vars_a)
+    llr = np.where(np.isnan(llr), 0.0, llr).tolist()  # a missing observation adds no evidence
+
+    a00, a01 = float(trans_a[0, 0]), float(trans_a[0, 1])
+    a10, a11 = float(trans_a[1, 0]), float(trans_a[1, 1])
+    log_odds = [0.0] * n_frames
+    z = _log_or_minus_inf(float(start_a[1])) - _log_or_minus_inf(float(start_a[0])) + llr[0]
+    log_odds[0] = z
+    exp, log_q = math.exp, _log_or_minus_inf
+    for t in range(1, n_frames):
+        # filtered (p0, p1) at t-1 from the log-odds, each side computed without cancellation
+        e = exp(-abs(z))
+        if z >= 0:
+            p1, p0 = 1.0 / (1.0 + e), e / (1.0 + e)
+        else:
+            p1, p0 = e / (1.0 + e), 1.0 / (1.0 + e)
+        # prediction A^T p, then the emission update in log-odds
+        q1 = p0 * a01 + p1 * a11
+        q0 = p0 * a00 + p1 * a10
+        z = log_q(q1) - log_q(q0) + llr[t]
+        log_odds[t] = z
+    return _sigmoid(np.asarray(log_odds, dtype=np.float64))
+
+
+def select_f1_threshold(scores: Any, labels: Any) -> float:
+    """The threshold c maximising F1 of ``scores >= c`` against ``labels``.
+
+    Args:
+        scores: (n,) finite float scores (e.g. pooled out-of-fold posteriors).
+        labels: (n,) int in {-1, 0, 1}; frames labelled -1 (unknown) are excluded.
+
+    Returns:
+        The chosen threshold, one of the distinct scores of the labelled frames. Ties in F1 go to
+        the smallest such threshold (the one predicting contact on the most frames).
+        F1 = 2 TP / (2 TP + FP + FN), computed for every candidate at once from counts sorted by
+        score (O(n log n)). At least one frame must be labelled contact.
+    """
+    s = np.asarray(scores)
+    if s.ndim != 1 or not np.issubdtype(s.dtype, np.number):
+        raise ValueError(f"scores: expected a 1-D numeric array, got shape {s.shape} dtype {s.dtype}")
+    s = s.astype(np.float64, copy=False)
+    y = _check_labels(labels, "labels", s.shape[0])
+    keep = y != UNKNOWN_LABEL
+    s, y = s[keep], y[keep]
+    if not np.isfinite(s).all():
+        n_bad = int((~np.isfinite(s)).sum())
+        raise ValueError(f"scores: expected finite values on labelled frames, found {n_bad} non-finite")
+    n_pos = int((y == CONTACT).sum())
+    if n_pos == 0:
+        raise ValueError(f"labels: no frame labelled contact among {y.shape[0]} labelled frames; F1 is undefined")
+    candidates, inverse = np.unique(s, return_inverse=True)  # ascending distinct values
+    pos_at = np.bincount(inverse, weights=(y == CONTACT).astype(np.float64), minlength=candidates.shape[0])
+    all_at = np.bincount(inverse, minlength=candidates.shape[0]).astype(np.float64)
+    # frames with score >= candidates[j]: suffix sums
+    tp = np.cumsum(pos_at[::-1])[::-1]
+    predicted = np.cumsum(all_at[::-1])[::-1]
+    f1 = 2.0 * tp / (n_pos + predicted)  # 2TP / (2TP + FP + FN) with FP + TP = predicted, FN + TP = n_pos
+    return float(candidates[int(np.argmax(f1))])  # argmax takes the first = smallest threshold
+
+
+# --------------------------------------------------------------------------------------------
+# The supervised HMM
+# --------------------------------------------------------------------------------------------
+
+
+def _check_sessions(
+    signals: Sequence[Any], labels: Sequence[Any], names: Sequence[str]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Validated (signal, labels) pairs, one per session; errors name the session."""
+    if isinstance(signals, np.ndarray) or isinstance(labels, np.ndarray):
+        raise ValueError("signals, labels: expected sequences (e.g. lists) of per-session 1-D arrays, got an array")
+    if len(signals) != len(labels):
+        raise ValueError(f"signals, labels: expected one label array per session, got {len(signals)} and {len(labels)}")
+    if len(signals) == 0:
+        raise ValueError("signals: expected at least one session, got none")
+    out = []
+    for name, sig, lab in zip(names, signals, labels):
+        x = _check_signal(sig, f"signal of {name}")
+        out.append((x, _check_labels(lab, f"labels of {name}", x.shape[0])))
+    return out
+
+
+class SupervisedGaussianHMM:
+    """Two-state Gaussian HMM fitted by maximum likelihood on fully labelled sessions.
+
+    Fitted attributes (after ``fit`` or ``from_dict``):
+        means_: (2,) float64, emission mean per state (0 = no contact, 1 = contact), dec.
+        vars_: (2,) float64, emission variance per state (ddof=0, floored at params.var_floor), dec^2.
+        transmat_: (2, 2) float64, transmat_[i, j] = n_ij / sum_j n_ij.
+        startprob_: (2,) float64, the stationary distribution of transmat_ (not learned).
+        n_frames_: (2,) int, frames with a finite signal per state used for means_/vars_.
+        transition_counts_: (2, 2) int, n_ij: consecutive labelled pairs (i -> j) within sessions.
+    """
+
+    def __init__(self, params: HMMParams | None = None) -> None:
+        self.params = params if params is not None else HMMParams()
+
+    def fit(self, signals: Sequence[Any], labels: Sequence[Any]) -> SupervisedGaussianHMM:
+        """Fit on sessions: ``signals[k]`` (T_k,) float (NaN allowed), ``labels[k]`` (T_k,) int in {-1,0,1}.
+
+        Means and variances use the frames of each state with a finite signal; transitions count
+        consecutive label pairs inside each session (never across sessions), skipping pairs with
+        an unknown label. Raises ValueError when a state has no finite frame, or when a state was
+        never left or never entered (a zero off-diagonal count would make it absorbing, which the
+        maximum-likelihood estimate cannot tell apart from missing data).
+        """
+        sessions = _check_sessions(signals, labels, [f"session {k}" for k in range(len(signals))])
+        x_all = np.concatenate([x for x, _ in sessions])
+        y_all = np.concatenate([y for _, y in sessions])
+        finite = np.isfinite(x_all)
+        n_frames = np.array([int(((y_all == s) & finite).sum()) for s in range(N_STATES)])
+        counts_text = ", ".join(f"{STATE_NAMES[s]}={n_frames[s]}" for s in range(N_STATES))
+        for s in range(N_STATES):
+            if n_frames[s] == 0:
+                raise ValueError(
+                    f"SupervisedGaussianHMM.fit: state {s} ({STATE_NAMES[s]}) has no frame with a finite signal; "
+                    f"frames with a finite signal per state: {counts_text}"
+                )
+        means = np.array([x_all[(y_all == s) & finite].mean() for s in range(N_STATES)])
+        raw_vars = np.array([x_all[(y_all == s) & finite].var(ddof=0) for s in range(N_STATES)])
+        vars_ = np.maximum(raw_vars, self.params.var_floor)
+
+        counts = np.zeros((N_STATES, N_STATES), dtype=np.int64)
+        for _, y in sessions:
+            prev, nxt = y[:-1], y[1:]
+            both = (prev != UNKNOWN_LABEL) & (nxt != UNKNOWN_LABEL)
+            np.add.at(counts, (prev[both], nxt[both]), 1)
+        for i in range(N_STATES):
+            j = 1 - i
+            if counts[i, j] == 0:
+                raise ValueError(
+                    f"SupervisedGaussianHMM.fit: no transition {STATE_NAMES[i]} -> {STATE_NAMES[j]} in the "
+                    f"training labels (transition counts [[n00, n01], [n10, n11]] = {counts.tolist()}); the "
+                    f"maximum-likelihood transition matrix would make state {i} ({STATE_NAMES[i]}) "
+                    f"{'absorbing' if counts[i].sum() else 'unobserved'}"
+                )
+        transmat = counts / counts.sum(axis=1, keepdims=True)
+
+        self.means_ = means
+        self.vars_ = vars_
+        self.transmat_ = transmat
+        self.startprob_ = stationary_distribution(transmat)
+        self.n_frames_ = n_frames
+        self.transition_counts_ = counts
+        return self
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "transmat_"):
+            raise NotFittedError("SupervisedGaussianHMM is not fitted: call fit() or from_dict() first")
+
+    def predict_proba(self, signal: Any) -> np.ndarray:
+        """Filtered P(contact | x_1..x_t), shape (T,), float64; see ``forward_filter``."""
+        self._check_fitted()
+        return forward_filter(signal, self.means_, self.vars_, self.transmat_, self.startprob_)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (plain floats, ints and lists) of params and fitted attributes."""
+        self._check_fitted()
+        return {
+            "params": _params_to_dict(self.params),
+            "means": [float(v) for v in self.means_],
+            "vars": [float(v) for v in self.vars_],
+            "transmat": [[float(v) for v in row] for row in self.transmat_],
+            "startprob": [float(v) for v in self.startprob_],
+            "n_frames": [int(v) for v in self.n_frames_],
+            "transition_counts": [[int(v) for v in row] for row in self.transition_counts_],
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SupervisedGaussianHMM:
+        """Rebuild a fitted model from ``to_dict`` output; missing or unknown keys are an error."""
+        expected = {"params", "means", "vars", "transmat", "startprob", "n_frames", "transition_counts"}
+        if set(data) != expected:
+            raise ValueError(
+                f"SupervisedGaussianHMM.from_dict: expected keys {sorted(expected)}, "
+                f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
+            )
+        model = cls(_params_from_dict(HMMParams, data["params"]))
+        means, vars_, transmat, startprob = _check_model(
+            data["means"], data["vars"], data["transmat"], data["startprob"]
+        )
+        model.means_, model.vars_, model.transmat_, model.startprob_ = means, vars_, transmat, startprob
+        model.n_frames_ = np.asarray(data["n_frames"], dtype=np.int64)
+        model.transition_counts_ = np.asarray(data["transition_counts"], dtype=np.int64)
+        return model
+
+
+# --------------------------------------------------------------------------------------------
+# Leave-one-session-out ensemble
+# --------------------------------------------------------------------------------------------
+
+
+class LosoEnsemble:
+    """K supervised HMMs, model k fitted on all training sessions but session k (paper, Sec. 2.2).
+
+    Fitted attributes:
+        models_: list of K fitted SupervisedGaussianHMM.
+        session_names_: list of K str, the training sessions in fit order.
+        oof_posteriors_: list of K (T_k,) float64, session k filtered by models_[k] (out of fold).
+        threshold_: float, ``select_f1_threshold`` on the pooled out-of-fold posteriors.
+    """
+
+    def __init__(self, params: HMMParams | None = None) -> None:
+        self.params = params if params is not None else HMMParams()
+
+    def fit(
+        self,
+        signals: Sequence[Any],
+        labels: Sequence[Any],
+        session_names: Sequence[str] | None = None,
+    ) -> LosoEnsemble:
+        """Fit on K >= 2 sessions (same inputs as ``SupervisedGaussianHMM.fit``), names default to "session k"."""
+        n_sessions = len(signals)
+        if session_names is None:
+            names = [f"session {k}" for k in range(n_sessions)]
+        else:
+            names = [str(n) for n in session_names]
+        if len(names) != n_sessions or len(set(names)) != n_sessions:
+            raise ValueError(f"session_names: expected {n_sessions} distinct names, got {list(names)}")
+        sessions = _check_sessions(signals, labels, names)
+        if n_sessions < 2:
+            raise ValueError(f"LosoEnsemble.fit: expected at least 2 training sessions, got {n_sessions}")
+        models, oof = [], []
+        for k in range(n_sessions):
+            rest = [sessions[i] for i in range(n_sessions) if i != k]
+            try:
+                model = SupervisedGaussianHMM(self.params).fit([x for x, _ in rest], [y for _, y in rest])
+            except ValueError as exc:
+                raise ValueError(f"LosoEnsemble.fit, fold leaving out {names[k]}: {exc}") from exc
+            models.append(model)
+            oof.append(model.predict_proba(sessions[k][0]))
+        pooled_labels = np.concatenate([y for _, y in sessions])
+        try:
+            threshold = select_f1_threshold(np.concatenate(oof), pooled_labels)
+        except ValueError as exc:
+            raise ValueError(f"LosoEnsemble.fit, threshold on pooled out-of-fold posteriors: {exc}") from exc
+        self.models_ = models
+        self.session_names_ = names
+        self.oof_posteriors_ = oof
+        self.threshold_ = threshold
+        return self
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "models_"):
+            raise NotFittedError("LosoEnsemble is not fitted: call fit() or from_dict() first")
+
+    def predict_proba(self, signal: Any) -> np.ndarray:
+        """Mean over the K models of the filtered P(contact | x_1..x_t), shape (T,), float64."""
+        self._check_fitted()
+        return np.mean(np.stack([m.predict_proba(signal) for m in self.models_]), axis=0)
+
+    def predict(self, signal: Any) -> np.ndarray:
+        """Contact decision per frame, (T,) bool: ``predict_proba(signal) >= threshold_``."""
+        return self.predict_proba(signal) >= self.threshold_
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict: params, session names, per-fold models, threshold and out-of-fold posteriors."""
+        self._check_fitted()
+        return {
+            "params": _params_to_dict(self.params),
+            "session_names": list(self.session_names_),
+            "models": [m.to_dict() for m in self.models_],
+            "threshold": float(self.threshold_),
+            "oof_posteriors": [[float(v) for v in p] for p in self.oof_posteriors_],
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LosoEnsemble:
+        """Rebuild a fitted ensemble from ``to_dict`` output; missing or unknown keys are an error."""
+        expected = {"params", "session_names", "models", "threshold", "oof_posteriors"}
+        if set(data) != expected:
+            raise ValueError(
+                f"LosoEnsemble.from_dict: expected keys {sorted(expected)}, "
+                f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
+            )
+        n = len(data["session_names"])
+        if len(data["models"]) != n or len(data["oof_posteriors"]) != n or n < 2:
+            raise ValueError(
+                f"LosoEnsemble.from_dict: expected K >= 2 session names, models and out-of-fold posteriors, "
+                f"got {n}, {len(data['models'])}, {len(data['oof_posteriors'])}"
+            )
+        ens = cls(_params_from_dict(HMMParams, data["params"]))
+        ens.models_ = [SupervisedGaussianHMM.from_dict(m) for m in data["models"]]
+        ens.session_names_ = [str(s) for s in data["session_names"]]
+        ens.oof_posteriors_ = [np.asarray(p, dtype=np.float64) for p in data["oof_posteriors"]]
+        ens.threshold_ = float(data["threshold"])
+        return ens

@@ -1,0 +1,104 @@
+"""model.json: a fitted contact model as hand-readable JSON (never pickle).
+
+It holds the K leave-one-session-out HMMs, the decision threshold, the training sessions, the
+patch and label parameters the features were computed with, and the package version.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .atomic import atomic_write
+from .hmm import LosoEnsemble
+from .params import LabelParams, PatchParams, from_dict, to_dict
+
+MODEL_FORMAT = "contact-viz-model/1"  # the "format" field of model.json
+
+
+@dataclass(frozen=True)
+class ContactModel:
+    """A fitted LOSO ensemble with the parameters its features were computed with."""
+
+    ensemble: LosoEnsemble
+    patch_params: PatchParams
+    label_params: LabelParams
+    training_sessions: tuple[dict[str, Any], ...]  # {"name", "path", "frames"} per training session
+    version: str = __version__
+
+    @property
+    def threshold(self) -> float:
+        """Decision threshold on the ensemble posterior."""
+        return float(self.ensemble.threshold_)
+
+    def predict_proba(self, signal: np.ndarray) -> np.ndarray:
+        """(T,) float64 mean filtered P(contact | x_1..x_t) of the K models."""
+        return self.ensemble.predict_proba(signal)
+
+
+def params_mismatch(expected: PatchParams, found: PatchParams) -> list[str]:
+    """'field: expected X, found Y' for every PatchParams field that differs."""
+    a, b = to_dict(expected), to_dict(found)
+    return [f"{k}: model {a[k]!r}, features {b[k]!r}" for k in a if a[k] != b[k]]
+
+
+def check_params(model: ContactModel, found: PatchParams, where: str) -> None:
+    """Refuse features computed with other patch parameters than the model's."""
+    diff = params_mismatch(model.patch_params, found)
+    if diff:
+        raise ValueError(
+            f"{where}: features were computed with other patch parameters than the model was fitted "
+            f"with ({'; '.join(diff)}); re-extract them with the model's parameters"
+        )
+
+
+def model_to_dict(model: ContactModel) -> dict[str, Any]:
+    """The JSON form of ``model``."""
+    return {
+        "format": MODEL_FORMAT,
+        "contact_viz_version": model.version,
+        "threshold": model.threshold,
+        "training_sessions": list(model.training_sessions),
+        "patch_params": to_dict(model.patch_params),
+        "label_params": to_dict(model.label_params),
+        "ensemble": model.ensemble.to_dict(),
+    }
+
+
+def save_model(model: ContactModel, path: str | Path) -> Path:
+    """Write ``model`` to ``path`` as indented JSON, atomically."""
+    path = Path(path)
+    with atomic_write(path) as handle:
+        json.dump(model_to_dict(model), handle, indent=1)
+        handle.write("\n")
+    return path
+
+
+def load_model(path: str | Path) -> ContactModel:
+    """Read a model.json; any problem is one ValueError naming the file and what was expected."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: model file not found (make one with `contact-viz fit`)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: expected a contact-viz model.json ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
+        raise ValueError(f"{path}: expected a contact-viz model.json with \"format\": \"{MODEL_FORMAT}\"")
+    try:
+        ensemble = LosoEnsemble.from_dict(data["ensemble"])
+        model = ContactModel(
+            ensemble=ensemble,
+            patch_params=from_dict(PatchParams, data["patch_params"]),
+            label_params=from_dict(LabelParams, data["label_params"]),
+            training_sessions=tuple(data["training_sessions"]),
+            version=str(data["contact_viz_version"]),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: malformed model.json ({type(exc).__name__}: {exc})") from None
+    return model

@@ -1,0 +1,300 @@
+"""The minimum-distance patch (paper, Sec. 2.1), as pure functions over arrays.
+
+Given a tool mask and a metric depth map of one rectified frame, :func:`compute_patch` builds
+the layers around the tool (eroded interior, excluded ring, exterior surface band), computes
+for every band pixel ``p``
+
+    d(p) = Z(p) - mean{ Z(q) : q in N1(p), q interior, Z(q) valid }   (needs >= tau_tool such q)
+    s(p) = mean{ |d(q)| : q in N2(p), q a band pixel with d(q) defined } (needs >= tau_patch)
+
+picks ``p* = argmin s`` (first in row-major order on ties) and reports the median of ``d`` over
+the valid pixels of ``N2(p*)`` as the frame's tool-tissue distance, and
+``-log10(max(|distance|, eps))`` as its signal.
+
+Choices the paper leaves open, fixed here:
+
+* "Tool pixels" of the N1 window are the *interior* pixels (the eroded mask) with valid depth;
+  the eroded edge is excluded because both the SAM2 mask and the stereo depth are least
+  reliable there.
+* The neighbours ``q`` scored in ``N2(p)`` are band pixels (surface pixels) only; a tool or
+  ring pixel never contributes a distance.
+* Windows are clipped at the image border (pixels outside the image do not exist).
+* Layers are defined by exact Euclidean distance to the mask edge: interior = tool pixels
+  more than ``erosion_px`` from the background; ring = the rest of the tool plus background
+  within ``ring_px`` of the tool; band = background between ``ring_px`` and
+  ``ring_px + band_width`` of the tool, band_width = clip(band_scale * shaft width,
+  band_min_px, band_max_px). The visible shaft width is ``2 * max(distance to background) - 1``
+  over the tool pixels (the diameter of the largest inscribed disc).
+
+Speed: every computation runs on the tool's bounding box padded by the band's reach (never the
+whole frame), with integral images gathered only at band pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .params import PatchParams
+
+# Class ids of the layer image (see PatchResult.layer_ids); shared with the viewer and figures.
+LAYER_BACKGROUND = 0
+LAYER_INTERIOR = 1
+LAYER_TOOL_EDGE = 2  # tool pixels eroded away: the inner half of the excluded ring
+LAYER_RING = 3  # background pixels of the excluded ring
+LAYER_BAND = 4  # exterior surface band (the candidate pixels)
+
+# Why no patch was found (PatchResult.reason).
+REASON_EMPTY_MASK = "empty_mask"
+REASON_NO_BAND = "no_band"
+REASON_NO_TOOL_DEPTH = "too_few_tool_pixels"
+REASON_NO_CANDIDATE = "too_few_valid_distances"
+
+
+@dataclass(frozen=True)
+class PatchResult:
+    """Everything :func:`compute_patch` found in one frame; every layer a viewer draws.
+
+    Attributes
+    ----------
+    layer_ids : (H, W) uint8
+        ``LAYER_*`` class of every pixel.
+    band_yx : (N, 2) int64
+        Row, column of every exterior-band pixel, row-major order.
+    band_distance_m : (N,) float64
+        ``d(p)`` at each band pixel, m; NaN where undefined (invalid depth or < tau_tool).
+    band_score_m : (N,) float64
+        ``s(p)`` at each band pixel, m; NaN where undefined (< tau_patch valid neighbours).
+    center_xy : (x, y) of ``p*`` in pixels, or None.
+    window_xyxy : (x0, y0, x1, y1) of ``N2(p*)`` clipped to the image, half-open, or None.
+    tool_depth_m : mean interior depth in ``N1(p*)`` (the tool depth behind ``d(p*)``), m, or NaN.
+    score_m : ``s(p*)``, m, or NaN.
+    distance_m : median ``d`` over the valid pixels of ``N2(p*)``, m, or NaN.
+    signal : ``-log10(max(|distance_m|, eps))``, or NaN.
+    shaft_width_px : visible shaft width, px (0 for an empty mask).
+    band_width_px : width of the exterior band used, px.
+    n_band, n_valid_distance, n_candidates : band pixels; those with ``d`` defined; those with ``s``.
+    invalid_depth_fraction : share of band pixels with invalid depth, in [0, 1] (NaN if no band).
+    reason : None when a patch was found, else one of the ``REASON_*`` strings.
+    """
+
+    layer_ids: np.ndarray
+    band_yx: np.ndarray
+    band_distance_m: np.ndarray
+    band_score_m: np.ndarray
+    center_xy: tuple[int, int] | None
+    window_xyxy: tuple[int, int, int, int] | None
+    tool_depth_m: float
+    score_m: float
+    distance_m: float
+    signal: float
+    shaft_width_px: float
+    band_width_px: float
+    n_band: int
+    n_valid_distance: int
+    n_candidates: int
+    invalid_depth_fraction: float
+    reason: str | None
+
+    @property
+    def found(self) -> bool:
+        """True when a patch was selected."""
+        return self.reason is None
+
+    @property
+    def interior(self) -> np.ndarray:
+        """(H, W) bool: the eroded tool interior."""
+        return self.layer_ids == LAYER_INTERIOR
+
+    @property
+    def ring(self) -> np.ndarray:
+        """(H, W) bool: the excluded ring (eroded tool edge and the background next to it)."""
+        return (self.layer_ids == LAYER_TOOL_EDGE) | (self.layer_ids == LAYER_RING)
+
+    @property
+    def band(self) -> np.ndarray:
+        """(H, W) bool: the exterior surface band."""
+        return self.layer_ids == LAYER_BAND
+
+    @property
+    def candidates_yx(self) -> np.ndarray:
+        """(M, 2) int64: band pixels where the score ``s`` is defined."""
+        return self.band_yx[np.isfinite(self.band_score_m)]
+
+
+def distance_signal(distance_m: np.ndarray | float, eps_m: float) -> np.ndarray | float:
+    """The paper's signal ``-log10(max(|d|, eps))``; NaN stays NaN. Units of ``d``/``eps``: m."""
+    with np.errstate(invalid="ignore"):
+        return -np.log10(np.maximum(np.abs(distance_m), eps_m))
+
+
+def band_width_px(shaft_width_px: float, params: PatchParams) -> float:
+    """Exterior band width for a visible shaft width, px (clipped to the params' range)."""
+    return float(np.clip(params.band_scale * shaft_width_px, params.band_min_px, params.band_max_px))
+
+
+def _check_inputs(depth_m: np.ndarray, tool_mask: np.ndarray) -> None:
+    if not isinstance(depth_m, np.ndarray) or depth_m.ndim != 2 or not np.issubdtype(depth_m.dtype, np.floating):
+        raise ValueError(
+            f"depth_m must be a 2-D float array (H, W) in metres, got "
+            f"{getattr(depth_m, 'dtype', type(depth_m))} with shape {getattr(depth_m, 'shape', None)}"
+        )
+    if not isinstance(tool_mask, np.ndarray) or tool_mask.ndim != 2:
+        raise ValueError(f"tool_mask must be a 2-D array (H, W), got shape {getattr(tool_mask, 'shape', None)}")
+    if tool_mask.shape != depth_m.shape:
+        raise ValueError(f"tool_mask shape {tool_mask.shape} differs from depth_m shape {depth_m.shape}")
+
+
+def _box_sums(integral: np.ndarray, ys: np.ndarray, xs: np.ndarray, half: int) -> np.ndarray:
+    """Sums over the (2*half+1)^2 windows centred at (ys, xs), clipped to the array.
+
+    ``integral`` is an (h+1, w+1) integral image (cv2.integral layout).
+    """
+    h, w = integral.shape[0] - 1, integral.shape[1] - 1
+    y0 = np.clip(ys - half, 0, h)
+    y1 = np.clip(ys + half + 1, 0, h)
+    x0 = np.clip(xs - half, 0, w)
+    x1 = np.clip(xs + half + 1, 0, w)
+    return integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+
+
+def _empty_result(shape: tuple[int, int], reason: str, layer_ids: np.ndarray | None = None,
+                  shaft_width_px: float = 0.0, band_w: float = 0.0) -> PatchResult:
+    empty_i = np.zeros((0, 2), np.int64)
+    empty_f = np.zeros(0, np.float64)
+    return PatchResult(
+        layer_ids=np.zeros(shape, np.uint8) if layer_ids is None else layer_ids,
+        band_yx=empty_i, band_distance_m=empty_f, band_score_m=empty_f,
+        center_xy=None, window_xyxy=None, tool_depth_m=float("nan"), score_m=float("nan"),
+        distance_m=float("nan"), signal=float("nan"), shaft_width_px=shaft_width_px, band_width_px=band_w,
+        n_band=0, n_valid_distance=0, n_candidates=0, invalid_depth_fraction=float("nan"), reason=reason,
+    )
+
+
+def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams = PatchParams()) -> PatchResult:
+    """Find the minimum-distance patch of one frame.
+
+    Parameters
+    ----------
+    depth_m : (H, W) float32 or float64
+        Metric depth of the rectified left view, m. Non-finite or non-positive values are invalid.
+    tool_mask : (H, W) bool or integer
+        Tool segmentation; nonzero = tool. Several blobs are all tool.
+    params : PatchParams
+
+    Returns
+    -------
+    PatchResult
+        With ``reason`` set (and NaN distance) when no patch could be found.
+    """
+    _check_inputs(depth_m, tool_mask)
+    shape = depth_m.shape
+    height, width = shape
+    tool = tool_mask if tool_mask.dtype == np.bool_ else tool_mask != 0
+
+    rows = np.flatnonzero(tool.any(axis=1))
+    if rows.size == 0:
+        return _empty_result(shape, REASON_EMPTY_MASK)
+    cols = np.flatnonzero(tool.any(axis=0))
+
+    # Work on the tool's bounding box padded by the band's reach: every interior, ring and band
+    # pixel lies inside it, so windows clipped to it lose nothing that could contribute.
+    pad = int(np.ceil(params.outer_reach_px)) + 1
+    y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, height)
+    x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, width)
+    tool_c = tool[y0:y1, x0:x1]
+    depth_c = depth_m[y0:y1, x0:x1].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        valid_c = np.isfinite(depth_c) & (depth_c > 0)
+
+    tool_u8 = np.ascontiguousarray(tool_c).view(np.uint8)
+    layer_c = np.zeros(tool_c.shape, np.uint8)
+    if tool_c.all():
+        # No background anywhere near the tool: nothing to erode against and no band.
+        layer_c[:] = LAYER_INTERIOR
+        layer_ids = np.zeros(shape, np.uint8)
+        layer_ids[y0:y1, x0:x1] = layer_c
+        return _empty_result(shape, REASON_NO_BAND, layer_ids)
+
+    dist_in = cv2.distanceTransform(tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # tool px -> background
+    dist_out = cv2.distanceTransform(1 - tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # background px -> tool
+    shaft_width = float(2.0 * dist_in.max() - 1.0)
+    band_w = band_width_px(shaft_width, params)
+
+    interior_c = dist_in > params.erosion_px
+    band_c = (dist_out > params.ring_px) & (dist_out <= params.ring_px + band_w)
+    layer_c[tool_c] = LAYER_TOOL_EDGE
+    layer_c[interior_c] = LAYER_INTERIOR
+    layer_c[~tool_c & (dist_out <= params.ring_px)] = LAYER_RING
+    layer_c[band_c] = LAYER_BAND
+    layer_ids = np.zeros(shape, np.uint8)
+    layer_ids[y0:y1, x0:x1] = layer_c
+
+    by, bx = np.nonzero(band_c)
+    n_band = int(by.size)
+    if n_band == 0:
+        return _empty_result(shape, REASON_NO_BAND, layer_ids, shaft_width, band_w)
+    band_yx = np.stack([by + y0, bx + x0], axis=1).astype(np.int64)
+    band_valid = valid_c[by, bx]
+    invalid_fraction = float(1.0 - band_valid.mean())
+
+    # d(p): surface depth minus mean valid interior depth in N1(p).
+    tool_w = interior_c & valid_c
+    tool_sum_int = cv2.integral(np.where(tool_w, depth_c, 0.0), sdepth=cv2.CV_64F)
+    tool_cnt_int = cv2.integral(tool_w.astype(np.uint8), sdepth=cv2.CV_32S)
+    half1 = params.n1 // 2
+    tool_cnt = _box_sums(tool_cnt_int, by, bx, half1)
+    tool_sum = _box_sums(tool_sum_int, by, bx, half1)
+    has_tool = tool_cnt >= params.tau_tool
+    has_d = band_valid & has_tool
+    tool_mean = np.full(n_band, np.nan)
+    tool_mean[has_tool] = tool_sum[has_tool] / tool_cnt[has_tool]
+    band_d = np.full(n_band, np.nan)
+    band_d[has_d] = depth_c[by[has_d], bx[has_d]] - tool_mean[has_d]
+    n_valid = int(has_d.sum())
+
+    def _result(reason, center=None, window=None, tool_depth=np.nan, score=np.nan, distance=np.nan,
+                band_s=None, n_cand=0):
+        return PatchResult(
+            layer_ids=layer_ids, band_yx=band_yx, band_distance_m=band_d,
+            band_score_m=np.full(n_band, np.nan) if band_s is None else band_s,
+            center_xy=center, window_xyxy=window, tool_depth_m=float(tool_depth), score_m=float(score),
+            distance_m=float(distance), signal=float(distance_signal(distance, params.eps_m)),
+            shaft_width_px=shaft_width, band_width_px=band_w, n_band=n_band, n_valid_distance=n_valid,
+            n_candidates=n_cand, invalid_depth_fraction=invalid_fraction, reason=reason,
+        )
+
+    if n_valid == 0:
+        return _result(REASON_NO_TOOL_DEPTH)
+
+    # s(p): mean |d| over the band pixels of N2(p) whose d is defined.
+    abs_d_c = np.zeros(tool_c.shape, np.float64)
+    abs_d_c[by[has_d], bx[has_d]] = np.abs(band_d[has_d])
+    has_d_c = np.zeros(tool_c.shape, np.uint8)
+    has_d_c[by[has_d], bx[has_d]] = 1
+    half2 = params.n2 // 2
+    d_cnt = _box_sums(cv2.integral(has_d_c, sdepth=cv2.CV_32S), by, bx, half2)
+    d_sum = _box_sums(cv2.integral(abs_d_c, sdepth=cv2.CV_64F), by, bx, half2)
+    is_candidate = d_cnt >= params.tau_patch
+    n_cand = int(is_candidate.sum())
+    band_s = np.full(n_band, np.nan)
+    band_s[is_candidate] = d_sum[is_candidate] / d_cnt[is_candidate]
+    if n_cand == 0:
+        return _result(REASON_NO_CANDIDATE, band_s=band_s)
+
+    best = int(np.nanargmin(band_s))
+    cy, cx = int(by[best]), int(bx[best])
+    x0, y0 = int(x0), int(y0)
+    wy0, wy1 = max(cy - half2, 0), min(cy + half2 + 1, tool_c.shape[0])
+    wx0, wx1 = max(cx - half2, 0), min(cx + half2 + 1, tool_c.shape[1])
+    in_window = has_d & (by >= wy0) & (by < wy1) & (bx >= wx0) & (bx < wx1)
+    distance = float(np.median(band_d[in_window]))
+    return _result(
+        None,
+        center=(cx + x0, cy + y0),
+        window=(max(cx + x0 - half2, 0), max(cy + y0 - half2, 0),
+                min(cx + x0 + half2 + 1, width), min(cy + y0 + half2 + 1, height)),
+        tool_depth=tool_mean[best], score=band_s[best], distance=distance, band_s=band_s, n_cand=n_cand,
+    )

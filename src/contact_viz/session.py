@@ -1,0 +1,928 @@
+"""Read a recorded session directory: calibration, frame order, force, labels and per-frame layers.
+
+The session directory format (the contract)::
+
+    SESSION/
+      session.json        optional: {"name", "phantom", "task", "fps"} (fps default 30)
+      K.txt               line 1 = 9 numbers, row-major 3x3 K (px); line 2 = stereo baseline (m)
+      left/<stem>.png|jpg|jpeg    rectified left frames (the frame list)
+      right/<stem>.png|jpg|jpeg   rectified right frames (optional)
+      masks/<stem>.png    tool mask: palettized (index = object id) or 8-bit 0/255 (or RGB, nonzero = tool)
+      depth/<stem>.npy    float32 metres, or depth/<stem>.png uint16 millimetres; 0, NaN, inf = invalid
+      force.csv           optional: `frame` (stem) or `timestamp` (s) column, plus fx, fy, fz (N)
+      frames.csv          optional: frame,timestamp (s); needed when force.csv is indexed by timestamp
+      labels.csv          optional manual labels: frame,contact (0/1); they replace the force labels
+
+``open_session`` validates everything that is session-wide up front and raises one
+:class:`SessionError` naming the file and what was expected. Per-frame problems never raise:
+``Session.iter_frames`` yields a :class:`BadFrame` for them and carries on. Nothing here ever
+writes to disk.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import re
+import warnings
+import zlib
+from collections import deque
+from collections.abc import Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from contact_viz.errors import SessionError
+from contact_viz.params import LabelParams
+
+__all__ = [
+    "LAYERS",
+    "BadFrame",
+    "Calibration",
+    "Frame",
+    "Session",
+    "SessionWarning",
+    "natural_key",
+    "open_session",
+    "read_depth_m",
+    "read_rgb",
+    "read_tool_mask",
+]
+
+LAYERS = frozenset({"mask", "depth", "left", "right"})  # names of the per-frame layers iter_frames can decode
+DEFAULT_FPS = 30.0  # frame rate used when session.json gives none, frames/s
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # accepted left/right image file types, in lookup preference
+MM_PER_M = 1000.0  # millimetres per metre (uint16 depth PNGs hold millimetres)
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_COLOR_TYPE_OFFSET = 25  # byte offset of the IHDR colour-type field in a PNG file
+_PNG_PALETTE = 3  # IHDR colour type of a palettized PNG
+_SESSION_JSON_KEYS = ("name", "phantom", "task", "fps")
+# Exceptions that mean "this file could not be decoded" (PIL raises SyntaxError for some broken PNGs).
+_DECODE_ERRORS = (OSError, ValueError, EOFError, SyntaxError, zlib.error, cv2.error)
+
+
+class SessionWarning(UserWarning):
+    """Something in a session is odd but usable (e.g. a CSV row for a stem not in left/)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Data types
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Rectified left camera intrinsics and stereo baseline."""
+
+    K: np.ndarray  # (3, 3) float64 camera matrix of the rectified left camera, px
+    baseline_m: float  # stereo baseline, m
+
+    @property
+    def fx(self) -> float:
+        """Focal length along x, px."""
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        """Focal length along y, px."""
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        """Principal point x, px."""
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        """Principal point y, px."""
+        return float(self.K[1, 2])
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One decoded frame. Layers that were not requested are None."""
+
+    index: int  # position in the session's frame order, 0-based
+    stem: str  # file stem shared by left/, right/, masks/, depth/
+    timestamp_s: float  # frame time, s
+    tool_mask: np.ndarray | None  # (H, W) bool, True = tool
+    depth_m: np.ndarray | None  # (H, W) float32, m; NaN where invalid
+    left_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB
+    right_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB; None also when the frame has no right image
+
+
+@dataclass(frozen=True)
+class BadFrame:
+    """A frame whose requested layers could not be read; ``error`` names the file and the expectation."""
+
+    index: int  # position in the session's frame order, 0-based
+    stem: str  # file stem
+    timestamp_s: float  # frame time, s
+    error: SessionError  # what went wrong, naming the file
+
+    @property
+    def reason(self) -> str:
+        """The error message: "<path>: <what was expected>"."""
+        return str(self.error)
+
+
+# --------------------------------------------------------------------------------------------
+# Small pure helpers
+# --------------------------------------------------------------------------------------------
+
+_DIGIT_RUNS = re.compile(r"(\d+)")
+
+
+def natural_key(stem: str) -> tuple:
+    """Sort key ordering stems by their numbers: "2" < "10", "frame_000012" by 12.
+
+    Digit runs compare as integers, other runs as strings; the full stem breaks ties
+    ("01" vs "1") so the order is total and deterministic.
+    """
+    parts = _DIGIT_RUNS.split(stem)  # text, digits, text, digits, ...
+    key = tuple((0, int(part), "") if i % 2 else (1, 0, part) for i, part in enumerate(parts) if part)
+    return key, stem
+
+
+def _as_int(text: str) -> int | None:
+    """``text`` as a non-negative integer if it is one (digits only), else None."""
+    return int(text) if text.isdigit() else None
+
+
+def _match_stems(csv_path: Path, names: Sequence[str], stems: Sequence[str]) -> np.ndarray:
+    """Index into ``stems`` for each frame name in a CSV, -1 where it matches no stem.
+
+    A name matches a stem by exact string first, then by integer value when both are integers
+    ("12" matches "000012"). Returns (len(names),) int64.
+    """
+    exact = {stem: i for i, stem in enumerate(stems)}
+    by_int: dict[int, list[int]] = {}
+    for i, stem in enumerate(stems):
+        value = _as_int(stem)
+        if value is not None:
+            by_int.setdefault(value, []).append(i)
+    out = np.full(len(names), -1, dtype=np.int64)
+    for row, name in enumerate(names):
+        if name in exact:
+            out[row] = exact[name]
+            continue
+        value = _as_int(name)
+        candidates = by_int.get(value, []) if value is not None else []
+        if len(candidates) == 1:
+            out[row] = candidates[0]
+        elif len(candidates) > 1:
+            raise SessionError(
+                csv_path,
+                f"frame {name!r} matches several stems by number ({', '.join(stems[i] for i in candidates)}); "
+                "write the stem exactly as in left/",
+            )
+    return out
+
+
+def _warn_unmatched(csv_path: Path, names: Sequence[str], matched: np.ndarray) -> None:
+    """Warn (SessionWarning) about CSV frame names that are not stems in left/."""
+    missing = [names[i] for i in np.flatnonzero(matched < 0)]
+    if missing:
+        shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
+        warnings.warn(
+            f"{csv_path}: {len(missing)} frame(s) not found in left/ were ignored: {shown}",
+            SessionWarning,
+            stacklevel=4,
+        )
+
+
+def _check_unique(csv_path: Path, names: Sequence[str], matched: np.ndarray) -> None:
+    """One row per frame: two rows naming the same stem are an error."""
+    seen: dict[int, str] = {}
+    for name, idx in zip(names, matched.tolist()):
+        if idx < 0:
+            continue
+        if idx in seen:
+            raise SessionError(
+                csv_path, f"expected one row per frame, found frame {seen[idx]!r} and {name!r} for the same stem"
+            )
+        seen[idx] = name
+
+
+def nearest_indices(sample_t: np.ndarray, query_t: np.ndarray) -> np.ndarray:
+    """Index of the nearest entry of sorted ``sample_t`` (m,) to each of ``query_t`` (n,); ties go earlier.
+
+    Vectorized with np.searchsorted. Returns (n,) int64. ``sample_t`` must be non-empty and ascending.
+    """
+    last = len(sample_t) - 1
+    after = np.searchsorted(sample_t, query_t, side="left")  # first sample >= query
+    hi = np.clip(after, 0, last)
+    lo = np.clip(after - 1, 0, last)
+    take_lo = np.abs(query_t - sample_t[lo]) <= np.abs(sample_t[hi] - query_t)
+    return np.where(take_lo, lo, hi)
+
+
+def force_labels(force_n: np.ndarray, params: LabelParams) -> np.ndarray:
+    """Contact labels from force magnitude (n,) N: 1 where >= threshold, 0 below, -1 where NaN. (n,) int8."""
+    labels = np.full(force_n.shape, -1, dtype=np.int8)
+    known = np.isfinite(force_n)
+    labels[known] = (force_n[known] >= params.contact_force_n).astype(np.int8)
+    return labels
+
+
+# --------------------------------------------------------------------------------------------
+# Session-wide files
+# --------------------------------------------------------------------------------------------
+
+
+def _parse_number_line(line: str) -> list[float]:
+    """Numbers on one line, separated by whitespace and/or commas; raises ValueError naming a bad token."""
+    tokens = [t for t in re.split(r"[\s,]+", line.strip()) if t]
+    return [float(t) for t in tokens]
+
+
+def read_calibration(path: Path) -> Calibration:
+    """Parse a FoundationStereo K.txt: line 1 = row-major 3x3 K (px), line 2 = baseline (m)."""
+    if not path.is_file():
+        raise SessionError(
+            path, "missing: expected the rectified left camera K.txt (line 1: 9 numbers of the 3x3 K in px; "
+            "line 2: the stereo baseline in metres)"
+        )
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SessionError(path, f"expected a readable text file, could not read it ({exc})") from exc
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if len(lines) != 2:
+        raise SessionError(
+            path, f"expected 2 lines (9 numbers of K, then the baseline in metres), found {len(lines)}"
+        )
+    try:
+        k_values = _parse_number_line(lines[0])
+    except ValueError as exc:
+        raise SessionError(
+            path, f"expected 9 numbers on line 1 (row-major 3x3 K in px), found {lines[0].strip()!r}"
+        ) from exc
+    if len(k_values) != 9:
+        raise SessionError(path, f"expected 9 numbers on line 1, found {len(k_values)} (row-major 3x3 K in px)")
+    K = np.asarray(k_values, dtype=np.float64).reshape(3, 3)
+    if not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0) or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+        raise SessionError(
+            path, f"expected a camera matrix [fx s cx; 0 fy cy; 0 0 1] with fx, fy > 0 on line 1, found {k_values}"
+        )
+    try:
+        b_values = _parse_number_line(lines[1])
+    except ValueError as exc:
+        raise SessionError(
+            path, f"expected one positive number (stereo baseline, m) on line 2, found {lines[1].strip()!r}"
+        ) from exc
+    if len(b_values) != 1 or not (math.isfinite(b_values[0]) and b_values[0] > 0):
+        found = f"{len(b_values)} numbers" if len(b_values) != 1 else f"{b_values[0]!r}"
+        raise SessionError(path, f"expected one positive number (stereo baseline, m) on line 2, found {found}")
+    K.flags.writeable = False
+    return Calibration(K=K, baseline_m=float(b_values[0]))
+
+
+def _read_session_json(path: Path) -> dict:
+    """session.json as a dict with validated name/phantom/task (str or None) and fps (> 0)."""
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SessionError(
+            path, f"expected valid JSON {{\"name\", \"phantom\", \"task\", \"fps\"}}, could not parse it ({exc})"
+        ) from exc
+    if not isinstance(data, dict):
+        raise SessionError(
+            path, f"expected a JSON object with keys {list(_SESSION_JSON_KEYS)}, found {type(data).__name__}"
+        )
+    unknown = sorted(set(data) - set(_SESSION_JSON_KEYS))
+    if unknown:
+        warnings.warn(
+            f"{path}: ignoring unknown key(s) {unknown}; known keys are {list(_SESSION_JSON_KEYS)}",
+            SessionWarning,
+            stacklevel=3,
+        )
+    for key in ("name", "phantom", "task"):
+        if data.get(key) is not None and not isinstance(data[key], str):
+            raise SessionError(path, f"expected \"{key}\" to be a string, found {data[key]!r}")
+    if "fps" in data:
+        fps = data["fps"]
+        if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not (math.isfinite(fps) and fps > 0):
+            raise SessionError(path, f"expected \"fps\" to be a positive number (frames/s), found {fps!r}")
+    return data
+
+
+def _read_csv(path: Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """A CSV with a header row: (lower-cased column names, [(line number, cells)]); blank rows skipped."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
+            rows = list(_numbered_rows(csv.reader(handle, skipinitialspace=True)))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise SessionError(
+            path, f"expected a readable CSV file with a header row, could not read it ({exc})"
+        ) from exc
+    if not rows:
+        raise SessionError(path, "expected a CSV file with a header row, found an empty file")
+    header = [cell.strip().lower() for cell in rows[0][1]]
+    body = []
+    for line, row in rows[1:]:
+        cells = [cell.strip() for cell in row]
+        if len(cells) != len(header):
+            raise SessionError(
+                path, f"line {line}: expected {len(header)} values ({', '.join(header)}), found {len(cells)}"
+            )
+        body.append((line, cells))
+    return header, body
+
+
+def _numbered_rows(reader) -> Iterator[tuple[int, list[str]]]:
+    """Non-blank CSV rows with their 1-based line numbers."""
+    for row in reader:
+        if any(cell.strip() for cell in row):
+            yield reader.line_num, row
+
+
+def _require_columns(path: Path, header: list[str], needed: Sequence[str], what: str) -> None:
+    missing = [c for c in needed if c not in header]
+    if missing:
+        raise SessionError(
+            path,
+            f"expected columns {', '.join(needed)} ({what}); missing {', '.join(missing)}; found columns {header}",
+        )
+
+
+def _column_floats(
+    path: Path, header: list[str], body: list[tuple[int, list[str]]], column: str, unit: str
+) -> np.ndarray:
+    """One CSV column as (rows,) float64; "nan" is allowed (unknown), anything else non-numeric is an error."""
+    col = header.index(column)
+    out = np.empty(len(body), dtype=np.float64)
+    for r, (line, cells) in enumerate(body):
+        try:
+            value = float(cells[col])
+        except ValueError:
+            raise SessionError(
+                path, f"line {line}: expected a number ({unit}) in column {column!r}, found {cells[col]!r}"
+            ) from None
+        if math.isinf(value):
+            raise SessionError(
+                path, f"line {line}: expected a finite number ({unit}) in column {column!r}, found {cells[col]!r}"
+            )
+        out[r] = value
+    return out
+
+
+def _read_frames_csv(path: Path, stems: list[str]) -> np.ndarray:
+    """frames.csv -> (n,) float64 timestamps, s, one per stem (every stem must have one)."""
+    header, body = _read_csv(path)
+    _require_columns(path, header, ("frame", "timestamp"), "frame stem, timestamp in seconds")
+    names = [cells[header.index("frame")] for _, cells in body]
+    times = _column_floats(path, header, body, "timestamp", "seconds")
+    if np.isnan(times).any():
+        line = body[int(np.flatnonzero(np.isnan(times))[0])][0]
+        raise SessionError(path, f"line {line}: expected a timestamp in seconds, found nan")
+    matched = _match_stems(path, names, stems)
+    _check_unique(path, names, matched)
+    _warn_unmatched(path, names, matched)
+    out = np.full(len(stems), np.nan)
+    ok = matched >= 0
+    out[matched[ok]] = times[ok]
+    missing = [stems[i] for i in np.flatnonzero(np.isnan(out))]
+    if missing:
+        shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
+        raise SessionError(path, f"expected a timestamp for every frame in left/, missing {len(missing)}: {shown}")
+    return out
+
+
+def _read_force_csv(path: Path, stems: list[str], timestamps_s: np.ndarray | None, frames_csv: Path) -> np.ndarray:
+    """force.csv -> (n, 3) float64 force per frame, N; NaN where no sample is matched.
+
+    Indexed by ``frame``: rows matched to stems (see _match_stems). Indexed by ``timestamp``:
+    nearest sample to each frame time, for frames inside the force recording's span widened by
+    one median force sampling interval on each side (frames farther out get NaN).
+    ``timestamps_s`` are the frame times from frames.csv (None when there is no frames.csv).
+    """
+    header, body = _read_csv(path)
+    key = "frame" if "frame" in header else "timestamp" if "timestamp" in header else None
+    missing = ([] if key else ["frame or timestamp"]) + [c for c in ("fx", "fy", "fz") if c not in header]
+    if missing:
+        raise SessionError(
+            path,
+            f"expected a 'frame' (stem) or 'timestamp' (s) column plus fx, fy, fz (N); "
+            f"missing {', '.join(missing)}; found columns {header}",
+        )
+    xyz = np.stack([_column_floats(path, header, body, c, "newtons") for c in ("fx", "fy", "fz")], axis=1)
+    force = np.full((len(stems), 3), np.nan)
+    if key == "frame":
+        names = [cells[header.index("frame")] for _, cells in body]
+        matched = _match_stems(path, names, stems)
+        _check_unique(path, names, matched)
+        _warn_unmatched(path, names, matched)
+        ok = matched >= 0
+        force[matched[ok]] = xyz[ok]
+        return force
+    if timestamps_s is None:
+        raise SessionError(
+            frames_csv, f"missing: {path.name} is indexed by timestamp, so frames.csv (frame,timestamp in seconds) "
+            "is needed to match force samples to frames"
+        )
+    sample_t = _column_floats(path, header, body, "timestamp", "seconds")
+    if np.isnan(sample_t).any():
+        line = body[int(np.flatnonzero(np.isnan(sample_t))[0])][0]
+        raise SessionError(path, f"line {line}: expected a timestamp in seconds, found nan")
+    if len(sample_t) == 0:
+        return force
+    order = np.argsort(sample_t, kind="stable")
+    sample_t, xyz = sample_t[order], xyz[order]
+    gap_s = float(np.median(np.diff(sample_t))) if len(sample_t) > 1 else 0.0
+    inside = (timestamps_s >= sample_t[0] - gap_s) & (timestamps_s <= sample_t[-1] + gap_s)
+    nearest = nearest_indices(sample_t, timestamps_s)
+    force[inside] = xyz[nearest[inside]]
+    return force
+
+
+def _read_labels_csv(path: Path, stems: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """labels.csv -> (frame indices (k,) int64, contact (k,) int8 in {0, 1})."""
+    header, body = _read_csv(path)
+    _require_columns(path, header, ("frame", "contact"), "frame stem, contact 0/1")
+    fcol, ccol = header.index("frame"), header.index("contact")
+    names = [cells[fcol] for _, cells in body]
+    contact = np.empty(len(body), dtype=np.int8)
+    for r, (line, cells) in enumerate(body):
+        if cells[ccol] not in ("0", "1"):
+            raise SessionError(path, f"line {line}: expected contact 0 or 1, found {cells[ccol]!r}")
+        contact[r] = int(cells[ccol])
+    matched = _match_stems(path, names, stems)
+    _check_unique(path, names, matched)
+    _warn_unmatched(path, names, matched)
+    ok = matched >= 0
+    return matched[ok], contact[ok]
+
+
+def _list_stems(directory: Path, suffixes: Sequence[str]) -> dict[str, Path]:
+    """stem -> file for the files in ``directory`` whose lower-cased suffix is in ``suffixes``.
+
+    Two files with the same stem (e.g. 7.png and 7.jpg) are an error.
+    """
+    found: dict[str, Path] = {}
+    with os.scandir(directory) as entries:
+        for entry in entries:
+            suffix = os.path.splitext(entry.name)[1]
+            if suffix.lower() not in suffixes or not entry.is_file():
+                continue
+            stem = entry.name[: -len(suffix)]
+            if stem in found:
+                raise SessionError(
+                    directory, f"expected one file per frame, found both {found[stem].name} and {entry.name}"
+                )
+            found[stem] = Path(entry.path)
+    return found
+
+
+def _find_masks(root: Path) -> dict[str, Path]:
+    """stem -> tool mask file (masks/<stem>.png)."""
+    masks_dir = root / "masks"
+    if not masks_dir.is_dir():
+        raise SessionError(
+            masks_dir, "missing: the tool masks (e.g. from SAM2) must be put in masks/<stem>.png, one per left frame "
+            "(palettized PNG with object ids, or 8-bit 0/255)"
+        )
+    return _list_stems(masks_dir, (".png",))
+
+
+def find_depth_source(root: Path) -> dict[str, Path]:
+    """Where each frame's depth comes from: stem -> depth file (depth/<stem>.npy, else depth/<stem>.png).
+
+    This is the one place that decides the depth source; new sources are added here.
+    """
+    depth_dir = root / "depth"
+    if not depth_dir.is_dir():
+        raise SessionError(
+            depth_dir, "missing: depth is needed, e.g. FoundationStereo depth_meter.npy saved as depth/<stem>.npy "
+            "(float32 metres), or depth/<stem>.png (uint16 millimetres)"
+        )
+    return {**_list_stems(depth_dir, (".png",)), **_list_stems(depth_dir, (".npy",))}  # .npy wins over .png
+
+
+# --------------------------------------------------------------------------------------------
+# Per-frame decoders (pure: path in, array out; raise SessionError naming the file)
+# --------------------------------------------------------------------------------------------
+
+
+def _read_bytes(path: Path, what: str) -> np.ndarray:
+    """The file's bytes as (k,) uint8; a missing, unreadable or empty file is a SessionError."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise SessionError(path, f"expected {what}, could not read the file ({exc.strerror or exc})") from exc
+    if data.size == 0:
+        raise SessionError(path, f"expected {what}, found an empty file")
+    return data
+
+
+def _is_palette_png(data: np.ndarray) -> bool:
+    """Whether the PNG bytes ``data`` declare a palettized image (IHDR colour type 3)."""
+    return (
+        data.size > _PNG_COLOR_TYPE_OFFSET
+        and data[: len(_PNG_SIGNATURE)].tobytes() == _PNG_SIGNATURE
+        and int(data[_PNG_COLOR_TYPE_OFFSET]) == _PNG_PALETTE
+    )
+
+
+def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
+    """Decode a tool mask PNG to (H, W) bool, True = tool.
+
+    Palettized (SAM2/DAVIS) and single-channel masks: pixel value = object id, 0 = background;
+    tool = nonzero, or == ``object_id`` when given. Multi-channel masks: tool = any colour channel
+    nonzero (``object_id`` is then an error). Palettized PNGs go through PIL, which returns the
+    palette indices (OpenCV would expand them to colours); the rest through OpenCV.
+    """
+    what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
+    data = _read_bytes(path, what)
+    try:
+        if _is_palette_png(data):
+            with Image.open(io.BytesIO(data.tobytes())) as image:
+                ids = np.asarray(image)
+        else:
+            ids = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except _DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+    if ids is None:
+        raise SessionError(path, f"expected {what}, could not decode it")
+    if ids.ndim == 2:
+        return ids == object_id if object_id is not None else ids != 0
+    if ids.ndim == 3 and ids.shape[2] in (3, 4):
+        if object_id is not None:
+            raise SessionError(
+                path,
+                f"expected a palettized or single-channel mask to select object_id={object_id}, "
+                f"found {ids.shape[2]} channels",
+            )
+        return np.any(ids[:, :, :3] != 0, axis=2)
+    raise SessionError(path, f"expected {what}, found an array of shape {ids.shape}")
+
+
+def _invalid_to_nan(depth_m: np.ndarray) -> np.ndarray:
+    """In place: NaN wherever depth is not a finite positive number. Returns ``depth_m``."""
+    valid = depth_m > 0
+    valid &= depth_m < np.inf
+    np.copyto(depth_m, np.float32(np.nan), where=~valid)
+    return depth_m
+
+
+def read_depth_m(path: Path) -> np.ndarray:
+    """Decode a depth file to (H, W) float32 metres, NaN where invalid (0, NaN, inf or negative).
+
+    ``.npy``: 2-D float32/float64 metres (FoundationStereo depth_meter.npy).
+    ``.png``: 16-bit single-channel millimetres.
+    """
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        what = "a 2-D float32 depth array in metres (.npy)"
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except FileNotFoundError as exc:
+            raise SessionError(path, f"expected {what}, file missing") from exc
+        except _DECODE_ERRORS as exc:
+            raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
+        is_float = isinstance(raw, np.ndarray) and raw.dtype.kind == "f" and raw.dtype.itemsize in (4, 8)
+        if not is_float or raw.ndim != 2:
+            shape = getattr(raw, "shape", None)
+            dtype = getattr(raw, "dtype", type(raw).__name__)
+            raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+        depth = raw.astype(np.float32, copy=False)
+        if not depth.flags.writeable or not depth.flags.c_contiguous:
+            depth = np.ascontiguousarray(depth).copy()
+        return _invalid_to_nan(depth)
+    if suffix == ".png":
+        what = "a 16-bit single-channel depth PNG in millimetres"
+        data = _read_bytes(path, what)
+        try:
+            raw = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        except _DECODE_ERRORS as exc:
+            raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+        if raw is None:
+            raise SessionError(path, f"expected {what}, could not decode it")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            channels = 1 if raw.ndim == 2 else raw.shape[2]
+            raise SessionError(
+                path, f"expected {what}, found {raw.dtype.itemsize * 8}-bit {channels}-channel ({raw.dtype})"
+            )
+        depth = raw.astype(np.float32)
+        depth /= np.float32(MM_PER_M)
+        return _invalid_to_nan(depth)
+    raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
+
+
+_IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.10 decodes straight to RGB
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """Decode a colour image to (H, W, 3) uint8 RGB (grey images are expanded, alpha dropped)."""
+    what = "a colour image (PNG or JPEG)"
+    data = _read_bytes(path, what)
+    try:
+        if _IMREAD_RGB is not None:
+            rgb = cv2.imdecode(data, _IMREAD_RGB)
+        else:
+            bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+            rgb = None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    except _DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+    if rgb is None or rgb.size == 0:
+        raise SessionError(path, f"expected {what}, could not decode it")
+    if rgb.dtype != np.uint8:  # 16-bit colour PNGs: keep the high byte
+        rgb = (rgb >> 8).astype(np.uint8)
+    return rgb
+
+
+# --------------------------------------------------------------------------------------------
+# Session
+# --------------------------------------------------------------------------------------------
+
+
+class Session:
+    """An opened session: metadata, calibration, per-frame times/force/labels, lazy frame decoding.
+
+    Attributes (arrays are read-only, n = number of frames):
+        root: session directory (absolute). name / phantom / task: from session.json.
+        fps: frames/s. calibration: K (px) and baseline (m).
+        stems: frame stems in numeric order. image_size: (height, width) px of the left images.
+        timestamps_s: (n,) float64, s. force_xyz_n: (n, 3) float64, N (NaN = no sample).
+        force_n: (n,) float64 magnitude, N (NaN = unknown). labels: (n,) int8 1/0/-1 (unknown).
+        label_source: (n,) str "manual" / "force" / "none". has_right: right/ holds images.
+    """
+
+    def __init__(
+        self,
+        *,
+        root: Path,
+        name: str,
+        phantom: str | None,
+        task: str | None,
+        fps: float,
+        calibration: Calibration,
+        stems: list[str],
+        image_size: tuple[int, int],
+        timestamps_s: np.ndarray,
+        force_xyz_n: np.ndarray,
+        force_n: np.ndarray,
+        labels: np.ndarray,
+        label_source: np.ndarray,
+        left_files: dict[str, Path],
+        right_files: dict[str, Path],
+        mask_files: dict[str, Path],
+        depth_files: dict[str, Path],
+        object_id: int | None,
+    ) -> None:
+        self.root = root
+        self.name = name
+        self.phantom = phantom
+        self.task = task
+        self.fps = fps
+        self.calibration = calibration
+        self.stems = stems
+        self.image_size = image_size
+        self.timestamps_s = _read_only(timestamps_s)
+        self.force_xyz_n = _read_only(force_xyz_n)
+        self.force_n = _read_only(force_n)
+        self.labels = _read_only(labels)
+        self.label_source = _read_only(label_source)
+        self.has_right = bool(right_files)
+        self.object_id = object_id
+        self._left_files = left_files
+        self._right_files = right_files
+        self._mask_files = mask_files
+        self._depth_files = depth_files
+
+    def __len__(self) -> int:
+        return len(self.stems)
+
+    def __repr__(self) -> str:
+        height, width = self.image_size
+        return f"Session({self.name!r}, {len(self)} frames, {width}x{height} px, root={str(self.root)!r})"
+
+    # ---- per-frame decoding ----
+
+    def _check_shape(self, path: Path, array: np.ndarray, what: str) -> None:
+        if array.shape[:2] != self.image_size:
+            raise SessionError(
+                path,
+                f"expected a {what} of {self.image_size[0]}x{self.image_size[1]} px "
+                "(height x width, as the left images), "
+                f"found {array.shape[0]}x{array.shape[1]}",
+            )
+
+    def _layer_path(self, files: dict[str, Path], stem: str, expected: Path, what: str) -> Path:
+        path = files.get(stem)
+        if path is None:
+            raise SessionError(expected, f"missing: expected {what} for frame {stem!r}")
+        return path
+
+    def load_frame(self, index: int, layers: Sequence[str] = ("mask", "depth")) -> Frame | BadFrame:
+        """Decode the requested ``layers`` of frame ``index`` (synchronously); a BadFrame on any problem."""
+        wanted = _check_layers(layers)
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for a session of {len(self)} frames")
+        return self._load(index, wanted)
+
+    def _load(self, index: int, layers: frozenset[str]) -> Frame | BadFrame:
+        stem = self.stems[index]
+        timestamp_s = float(self.timestamps_s[index])
+        tool_mask = depth_m = left_rgb = right_rgb = None
+        try:
+            if "mask" in layers:
+                expected = self.root / "masks" / f"{stem}.png"
+                path = self._layer_path(self._mask_files, stem, expected, "a tool mask PNG")
+                tool_mask = read_tool_mask(path, self.object_id)
+                self._check_shape(path, tool_mask, "tool mask")
+            if "depth" in layers:
+                path = self._layer_path(
+                    self._depth_files,
+                    stem,
+                    self.root / "depth" / f"{stem}.npy",
+                    "a depth map (.npy float32 m or .png uint16 mm)",
+                )
+                depth_m = read_depth_m(path)
+                self._check_shape(path, depth_m, "depth map")
+            if "left" in layers:
+                path = self._left_files[stem]
+                left_rgb = read_rgb(path)
+                self._check_shape(path, left_rgb, "left image")
+            if "right" in layers and stem in self._right_files:
+                path = self._right_files[stem]
+                right_rgb = read_rgb(path)
+                self._check_shape(path, right_rgb, "right image")
+        except SessionError as error:
+            return BadFrame(index=index, stem=stem, timestamp_s=timestamp_s, error=error)
+        return Frame(
+            index=index,
+            stem=stem,
+            timestamp_s=timestamp_s,
+            tool_mask=tool_mask,
+            depth_m=depth_m,
+            left_rgb=left_rgb,
+            right_rgb=right_rgb,
+        )
+
+    def iter_frames(
+        self,
+        layers: Sequence[str] = ("mask", "depth"),
+        indices: Sequence[int] | None = None,
+        prefetch: int = 4,
+        workers: int = 1,
+    ) -> Iterator[Frame | BadFrame]:
+        """Yield the frames ``indices`` (default: all) in order, decoding only ``layers``.
+
+        Decoding runs in ``workers`` background threads, at most ``prefetch`` frames ahead of
+        the consumer, so it overlaps the caller's compute. Per-frame problems are yielded as
+        BadFrame. Closing the generator early (break) cancels pending work and joins the threads.
+        Arguments are checked now (ValueError / IndexError), not at the first ``next``.
+        """
+        wanted = _check_layers(layers)
+        if isinstance(prefetch, bool) or not isinstance(prefetch, int) or prefetch < 1:
+            raise ValueError(f"prefetch must be a positive integer, got {prefetch!r}")
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise ValueError(f"workers must be a positive integer, got {workers!r}")
+        order = list(range(len(self))) if indices is None else [int(i) for i in indices]
+        bad = [i for i in order if not 0 <= i < len(self)]
+        if bad:
+            raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(self)} frames")
+        return self._iterate(order, wanted, prefetch, workers)
+
+    def _iterate(
+        self, order: list[int], layers: frozenset[str], prefetch: int, workers: int
+    ) -> Iterator[Frame | BadFrame]:
+        if not order:
+            return
+        todo = iter(order)
+        pending: deque[Future] = deque()
+        executor = ThreadPoolExecutor(max_workers=min(workers, prefetch), thread_name_prefix="contact-viz-decode")
+        try:
+            for index in todo:
+                pending.append(executor.submit(self._load, index, layers))
+                if len(pending) >= prefetch:
+                    break
+            while pending:
+                result = pending.popleft().result()
+                index = next(todo, None)
+                if index is not None:
+                    pending.append(executor.submit(self._load, index, layers))
+                yield result
+        finally:
+            for future in pending:
+                future.cancel()
+            executor.shutdown(wait=True, cancel_futures=True)
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+def _check_layers(layers: Sequence[str]) -> frozenset[str]:
+    if isinstance(layers, str):
+        layers = (layers,)
+    wanted = frozenset(layers)
+    unknown = sorted(wanted - LAYERS)
+    if unknown:
+        raise ValueError(f"layers: unknown layer(s) {unknown}; expected a subset of {sorted(LAYERS)}")
+    return wanted
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(height, width) px from an image header (no full decode)."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except _DECODE_ERRORS as exc:
+        raise SessionError(
+            path,
+            f"expected a readable PNG/JPEG left image to take the image size from ({type(exc).__name__}: {exc})",
+        ) from exc
+    if width <= 0 or height <= 0:
+        raise SessionError(path, f"expected a non-empty left image, found {width}x{height} px")
+    return height, width
+
+
+def open_session(
+    path: str | Path, *, object_id: int | None = None, label_params: LabelParams = LabelParams()
+) -> Session:
+    """Open and validate a session directory (see the module docstring for the format).
+
+    ``object_id`` picks one object id from palettized / single-channel masks (default: any
+    nonzero pixel is tool). ``label_params`` sets the force threshold of the contact labels.
+    Raises SessionError (naming the file and what was expected) on any session-wide problem;
+    warns (SessionWarning) about CSV rows naming stems that are not in left/.
+    """
+    if object_id is not None and (isinstance(object_id, bool) or not isinstance(object_id, int) or object_id < 1):
+        raise ValueError(f"object_id must be a positive integer (0 is background) or None, got {object_id!r}")
+    root = Path(path).expanduser()
+    if not root.exists():
+        raise SessionError(root, "missing: expected a session directory (left/, masks/, depth/, K.txt)")
+    if not root.is_dir():
+        raise SessionError(root, "expected a session directory (left/, masks/, depth/, K.txt), found a file")
+    root = root.resolve()
+
+    meta = _read_session_json(root / "session.json")
+    left_dir = root / "left"
+    if not left_dir.is_dir():
+        raise SessionError(left_dir, "missing: expected a directory of rectified left frames left/<stem>.png|jpg")
+    left_files = _list_stems(left_dir, IMAGE_SUFFIXES)
+    if not left_files:
+        raise SessionError(left_dir, "expected rectified left frames left/<stem>.png|jpg|jpeg, found none")
+    stems = sorted(left_files, key=natural_key)
+    calibration = read_calibration(root / "K.txt")
+    mask_files = _find_masks(root)
+    depth_files = find_depth_source(root)
+    right_dir = root / "right"
+    right_files = _list_stems(right_dir, IMAGE_SUFFIXES) if right_dir.is_dir() else {}
+    image_size = _image_size(left_files[stems[0]])
+
+    fps = float(meta.get("fps", DEFAULT_FPS))
+    frames_csv = root / "frames.csv"
+    frame_times = _read_frames_csv(frames_csv, stems) if frames_csv.is_file() else None
+    timestamps_s = frame_times if frame_times is not None else np.arange(len(stems), dtype=np.float64) / fps
+
+    force_csv = root / "force.csv"
+    if force_csv.is_file():
+        force_xyz_n = _read_force_csv(force_csv, stems, frame_times, frames_csv)
+    else:
+        force_xyz_n = np.full((len(stems), 3), np.nan)
+    force_n = np.linalg.norm(force_xyz_n, axis=1)
+    labels = force_labels(force_n, label_params)
+    label_source = np.where(labels >= 0, "force", "none").astype("<U6")
+
+    labels_csv = root / "labels.csv"
+    if labels_csv.is_file():
+        manual_index, manual_contact = _read_labels_csv(labels_csv, stems)
+        labels[manual_index] = manual_contact
+        label_source[manual_index] = "manual"
+
+    return Session(
+        root=root,
+        name=meta.get("name") or root.name,
+        phantom=meta.get("phantom"),
+        task=meta.get("task"),
+        fps=fps,
+        calibration=calibration,
+        stems=stems,
+        image_size=image_size,
+        timestamps_s=timestamps_s,
+        force_xyz_n=force_xyz_n,
+        force_n=force_n,
+        labels=labels,
+        label_source=label_source,
+        left_files=left_files,
+        right_files=right_files,
+        mask_files=mask_files,
+        depth_files=depth_files,
+        object_id=object_id,
+    )

@@ -1,0 +1,142 @@
+"""`extract` on synthetic sessions: the distance tracks the generator's true gap."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from contact_viz.extract import FEATURE_COLUMNS, REASON_BAD_FRAME, extract_features, iter_frame_results
+from contact_viz.params import PatchParams
+from contact_viz.patch import compute_patch
+from contact_viz.session import open_session
+from contact_viz.synth import SynthParams, generate_session
+
+CLI = [sys.executable, "-m", "contact_viz.cli"]
+
+
+@pytest.fixture(scope="module")
+def cup_session(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("sessions") / "cup"
+    generate_session(out, SynthParams(phantom="cup", frames=90, seed=3, width=480, height=270))
+    return out
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def listing(root: Path) -> list[tuple[str, int, int]]:
+    return sorted((str(p.relative_to(root)), p.stat().st_size, p.stat().st_mtime_ns)
+                  for p in root.rglob("*"))
+
+
+def test_distance_tracks_true_gap(cup_session):
+    session = open_session(cup_session)
+    rows = extract_features(session)
+    truth = read_csv(cup_session / "truth.csv")
+    assert [r["frame"] for r in rows] == [t["frame"] for t in truth]
+    distance = np.array([float(r["distance_m"]) if r["distance_m"] else np.nan for r in rows])
+    gap = np.array([float(t["gap_m"]) for t in truth])
+    assert np.isfinite(distance).mean() > 0.9
+    in_contact = gap == 0
+    hovering = gap > 0.004
+    assert in_contact.sum() >= 5 and hovering.sum() >= 5
+    ok = np.isfinite(distance)
+    # Near 0 in contact, close to the gap when hovering.
+    assert np.median(np.abs(distance[in_contact & ok])) < 0.0015
+    rel_error = np.abs(distance[hovering & ok] - gap[hovering & ok]) / gap[hovering & ok]
+    assert np.median(rel_error) < 0.35
+    assert np.corrcoef(distance[ok], gap[ok])[0, 1] > 0.9
+    # The signal separates contact from hovering.
+    signal = np.array([float(r["signal"]) if r["signal"] else np.nan for r in rows])
+    assert np.nanmin(signal[in_contact]) > np.nanmax(signal[hovering])
+
+
+def test_rows_agree_with_compute_patch(cup_session):
+    session = open_session(cup_session)
+    params = PatchParams()
+    rows = extract_features(session, params, indices=[0, 10, 20])
+    for row, frame in zip(rows, session.iter_frames(layers=("mask", "depth"), indices=[0, 10, 20])):
+        direct = compute_patch(frame.depth_m, frame.tool_mask, params)
+        assert row["frame"] == frame.stem
+        assert set(row) == set(FEATURE_COLUMNS)
+        if direct.found:
+            assert float(row["distance_m"]) == direct.distance_m
+            assert (int(row["patch_x"]), int(row["patch_y"])) == direct.center_xy
+            assert float(row["signal"]) == pytest.approx(-math.log10(max(abs(direct.distance_m), 1e-4)))
+        assert int(row["tool_area_px"]) == int(frame.tool_mask.sum())
+        assert float(row["force_n"]) == pytest.approx(float(session.force_n[frame.index]))
+
+
+def test_bad_frame_is_skipped_with_warning_and_run_goes_on(cup_session, tmp_path):
+    broken = tmp_path / "broken"
+    shutil.copytree(cup_session, broken)
+    stems = sorted(p.stem for p in (broken / "left").iterdir())
+    (broken / "depth" / f"{stems[5]}.npy").unlink()
+    (broken / "masks" / f"{stems[7]}.png").write_bytes(b"not a png at all")
+    session = open_session(broken)
+    with pytest.warns(UserWarning) as record:
+        results = list(iter_frame_results(session, indices=range(4, 10)))
+    messages = [str(w.message) for w in record]
+    assert any(stems[5] in m and "depth" in m for m in messages)
+    assert any(stems[7] in m and "mask" in m for m in messages)
+    assert [r.patch is None for r in results] == [False, True, False, True, False, False]
+    rows = extract_features(session, indices=range(4, 10))
+    assert [r["reason"] == REASON_BAD_FRAME for r in rows] == [False, True, False, True, False, False]
+    assert stems[5] in rows[1]["detail"]
+
+
+def test_cli_extract_writes_features_and_config(cup_session, tmp_path):
+    before = listing(cup_session)
+    out = tmp_path / "out" / "features.csv"
+    done = subprocess.run([*CLI, "extract", str(cup_session), "-o", str(out)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    rows = read_csv(out)
+    assert len(rows) == 90 and list(rows[0]) == list(FEATURE_COLUMNS)
+    config = json.loads(out.with_name("features.csv.json").read_text())
+    assert config["patch_params"]["n1"] == 31 and config["label_params"]["contact_force_n"] == 2.0
+    assert listing(cup_session) == before  # the session directory is untouched
+    assert not [p for p in out.parent.iterdir() if p.name.endswith(".tmp")]
+    # Labels follow the force threshold.
+    for r in rows:
+        if r["force_n"]:
+            assert int(r["label"]) == int(float(r["force_n"]) >= 2.0)
+
+
+def test_cli_extract_refuses_to_write_into_the_session(cup_session):
+    done = subprocess.run([*CLI, "extract", str(cup_session), "-o", str(cup_session / "f.csv")],
+                          capture_output=True, text=True)
+    assert done.returncode == 2
+    assert "inside the session directory" in done.stderr
+    assert not (cup_session / "f.csv").exists()
+
+
+def test_cli_extract_reports_a_malformed_session_in_one_line(tmp_path):
+    done = subprocess.run([*CLI, "extract", str(tmp_path / "nowhere")], capture_output=True, text=True)
+    assert done.returncode == 2
+    assert "nowhere" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_extract_does_not_import_heavy_modules(cup_session, tmp_path):
+    code = (
+        "import sys\n"
+        "from contact_viz.cli import app\n"
+        f"sys.argv = ['contact-viz', 'extract', {str(cup_session)!r}, '-o', {str(tmp_path / 'f.csv')!r}]\n"
+        "try:\n    app()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+        "heavy = sorted(m for m in ('open3d', 'rerun', 'torch', 'sklearn', 'matplotlib') if m in sys.modules)\n"
+        "print('HEAVY', heavy)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={**os.environ, "COLUMNS": "100"})
+    assert done.returncode == 0, done.stderr
+    assert "HEAVY []" in done.stdout
