@@ -14,6 +14,7 @@ from contact_viz.hmm import (
     HMMParams,
     LosoEnsemble,
     NotFittedError,
+    StreamingFilter,
     SupervisedGaussianHMM,
     forward_filter,
     select_f1_threshold,
@@ -172,6 +173,10 @@ def test_stationary_distribution():
     np.testing.assert_allclose(stationary_distribution([[0.9, 0.1], [0.0, 1.0]]), [0.0, 1.0], atol=1e-12)
     with pytest.raises(ValueError, match="no unique stationary"):
         stationary_distribution(np.eye(2))
+    # counts 80/1 and 1/17 (a fitted fold of a synthetic study): row sums off by round-off only
+    fitted = np.array([[80 / 81, 1 / 81], [1 / 18, 17 / 18]])
+    np.testing.assert_allclose(stationary_distribution(fitted), [(1 / 18) / (1 / 81 + 1 / 18), (1 / 81) / (1 / 81 + 1 / 18)],
+                               atol=1e-12)
 
 
 # ------------------------------------------------------------------ fitting
@@ -344,3 +349,47 @@ def test_loso_errors(sessions):
         )
     with pytest.raises(NotFittedError):
         LosoEnsemble().predict(signals[0])
+
+
+# ------------------------------------------------------------------ streaming filter
+
+
+def test_streaming_filter_equals_forward_filter_bit_for_bit(sessions):
+    signals, labels = sessions
+    rng = np.random.default_rng(11)
+    signal = rng.normal(1.5, 1.5, 400)
+    signal[rng.random(400) < 0.1] = np.nan
+    signal[0] = np.nan  # a missing first frame: the prior
+    signal[50:60] = np.nan  # a run of missing frames: repeated predictions
+    signal[100] = 40.0  # extreme values saturate the log-odds
+    signal[101] = -40.0
+
+    model = SupervisedGaussianHMM().fit(signals, labels)
+    stream = StreamingFilter(model)
+    got = np.array([stream.update(x) for x in signal])
+    assert np.array_equal(got, model.predict_proba(signal))
+    assert stream.frames == 400
+
+    # ensembles of several sizes (the mean over models must add up in the same order as np.mean)
+    many = [signals[0][:200], signals[1][:200], signals[2][:200], signals[0][200:400], signals[1][200:400],
+            signals[2][200:400], signals[0][400:600], signals[2][400:600], signals[0][600:], signals[1][400:]]
+    many_labels = [labels[0][:200], labels[1][:200], labels[2][:200], labels[0][200:400], labels[1][200:400],
+                   labels[2][200:400], labels[0][400:600], labels[2][400:600], labels[0][600:], labels[1][400:]]
+    for k in (2, 3, 6, 10):
+        ens = LosoEnsemble().fit(many[:k], many_labels[:k])
+        stream = StreamingFilter(ens)
+        got = np.array([stream.update(x) for x in signal])
+        assert np.array_equal(got, ens.predict_proba(signal)), k
+        # causal: a prefix gives the same values, and reset starts over
+        stream.reset()
+        assert np.array_equal([stream.update(x) for x in signal[:30]], ens.predict_proba(signal[:30]))
+
+
+def test_streaming_filter_errors():
+    with pytest.raises(NotFittedError):
+        StreamingFilter(LosoEnsemble())
+    with pytest.raises(TypeError, match="SupervisedGaussianHMM or LosoEnsemble"):
+        StreamingFilter("model.json")
+    model = SupervisedGaussianHMM().fit([np.array([0.1, 0.2, 2.0, 2.1, 0.3])], [np.array([0, 0, 1, 1, 0])])
+    with pytest.raises(ValueError, match="finite"):
+        StreamingFilter(model).update(np.inf)

@@ -329,9 +329,122 @@ def predict(
                f"(threshold {model.threshold:.4f})")
 
 
-def main() -> None:
-    """Console-script entry point."""
-    app()
+def _has_display() -> bool:
+    import os
+
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+@app.command()
+def view(
+    session_dir: Annotated[Path, typer.Argument(help="Session directory.")],
+    model_path: Annotated[Optional[Path], typer.Option("--model", help="model.json: adds the HMM posterior, "
+                          "threshold and predicted contact.")] = None,
+    save: Annotated[Optional[Path], typer.Option("--save", "-o", help="Write the recording to this .rrd file.")] = None,
+    serve: Annotated[bool, typer.Option(help="Serve the web viewer on localhost (Ctrl-C to stop).")] = False,
+    connect: Annotated[Optional[str], typer.Option(help="Stream to a running viewer, e.g. "
+                       "rerun+http://127.0.0.1:9876/proxy.")] = None,
+    spawn: Annotated[Optional[bool], typer.Option("--spawn/--no-spawn", help="Open the native viewer "
+                     "[default: when a display exists and no other sink is chosen].")] = None,
+    start: Annotated[int, typer.Option(min=0, help="First frame index.")] = 0,
+    end: Annotated[Optional[int], typer.Option(help="Stop before this frame index.")] = None,
+    stride: Annotated[int, typer.Option(min=1, help="Show every n-th frame.")] = 1,
+    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="JPEG quality of re-encoded images.")] = 85,
+    raw_images: Annotated[bool, typer.Option(help="Log raw RGB instead of JPEG (large).")] = False,
+    right: Annotated[bool, typer.Option("--right/--no-right", help="Log the right image.")] = True,
+    depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 3,
+    points: Annotated[bool, typer.Option("--points/--no-points", help="Log the RGB point cloud.")] = True,
+    point_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel away from the patch.")] = 6,
+    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 1.5,
+    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: full density within this of the "
+                              "patch centre, px.")] = 40,
+    grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
+    web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
+    object_id: ObjectId = None,
+    contact_force: Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")] = 2.0,
+    params_file: Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields "
+                           "(ignored with --model: the model's are used).")] = None,
+) -> None:
+    """Run the pipeline frame by frame and log everything to one Rerun timeline."""
+    from .errors import SessionError
+    from .params import LabelParams, PatchParams, from_dict
+    from .session import open_session
+
+    model = None
+    try:
+        if model_path is not None:
+            from .model_file import load_model
+
+            model = load_model(model_path)
+            params = model.patch_params
+        else:
+            params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
+        label_params = LabelParams(contact_force_n=contact_force)
+        session = open_session(session_dir, object_id=object_id, label_params=label_params)
+    except (SessionError, ValueError) as exc:
+        _fail(str(exc))
+    from .debugger import DebuggerOptions, open_recording, run_debugger
+    from .pointcloud import CloudParams
+    from .rerun_log import default_blueprint
+
+    if spawn is None:
+        spawn = _has_display() and save is None and not serve and connect is None
+    if not (spawn or serve or connect or save):
+        save = Path("results") / session.name / "view.rrd"
+        typer.echo(f"no display here: saving the recording to {save} (open it with `rerun {save}`)")
+    if save is not None:
+        if _inside(save, session.root):
+            _fail(f"{save}: refusing to write inside the session directory {session.root}")
+        save.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        options = DebuggerOptions(
+            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, raw_images=raw_images,
+            with_right=right, depth_step=depth_step, points=points,
+            cloud=CloudParams(near_radius_px=near_radius_px, stride_px=point_stride, voxel_m=voxel_mm / 1000),
+            patch_params=params,
+        )
+        opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
+                                web_port=web_port, blueprint=default_blueprint(
+                                    with_right=right and session.has_right, with_model=model is not None))
+    except (ValueError, IndexError) as exc:
+        _fail(str(exc))
+    if opened.web_viewer_url:
+        typer.echo(f"web viewer: {opened.web_viewer_url}")
+    if model is None:
+        typer.echo("no --model: the HMM posterior is not shown (make one with `contact-viz fit TRAIN... -o model.json`)")
+    try:
+        with _progress() as progress:
+            task = progress.add_task(f"view {session.name}", total=None)
+            summary = run_debugger(session, opened.rec, options, model=model,
+                                   progress=lambda done, total: progress.update(task, completed=done, total=total))
+    except (ValueError, IndexError) as exc:
+        _fail(str(exc))
+    for line in summary.lines():
+        typer.echo(line)
+    if save is not None:
+        typer.echo(f"{save}: open it with `rerun {save}`")
+    if serve:
+        import time
+
+        typer.echo("serving; press Ctrl-C to stop")
+        try:
+            while True:
+                time.sleep(1)
+        except KeyboardInterrupt:
+            pass
+
+
+_COMMANDS = ("extract", "synth", "fit", "evaluate", "predict", "view")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point. `contact-viz SESSION_DIR [options]` means `contact-viz view SESSION_DIR`."""
+    import sys
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if args and not args[0].startswith("-") and args[0] not in _COMMANDS:
+        args.insert(0, "view")
+    app(args=args, prog_name="contact-viz")
 
 
 if __name__ == "__main__":

@@ -52,8 +52,8 @@ def per_frame_rows(scores: Sequence[SessionScores]) -> list[dict[str, object]]:
             out.append({
                 "session": s.name,
                 "frame": stem,
-                "signal": "" if np.isnan(s.signal[i]) else f"{s.signal[i]:.6f}",
-                "posterior": f"{s.posterior[i]:.6f}",
+                "signal": "" if np.isnan(s.signal[i]) else repr(float(s.signal[i])),
+                "posterior": repr(float(s.posterior[i])),
                 "predicted": int(s.predicted[i]),
                 "label": "" if s.labels[i] < 0 else int(s.labels[i]),
             })

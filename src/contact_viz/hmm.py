@@ -30,6 +30,7 @@ NO_CONTACT = 0
 CONTACT = 1
 UNKNOWN_LABEL = -1
 STATE_NAMES = ("no contact", "contact")
+STATIONARY_RANK_TOL = 1e-9  # singular values below this count as zero when testing A^T - I for rank n-1
 
 
 @dataclass(frozen=True)
@@ -122,7 +123,9 @@ def stationary_distribution(transmat: Any) -> np.ndarray:
     n = a.shape[0]
     system = a.T - np.eye(n)
     # the null space of (A^T - I) is one-dimensional exactly when the distribution is unique
-    if np.linalg.matrix_rank(system) != n - 1:
+    # (round-off in the row sums leaves a singular value of ~1e-17 where the exact one is 0, so
+    # the rank needs a tolerance well above machine precision)
+    if np.linalg.matrix_rank(system, tol=STATIONARY_RANK_TOL) != n - 1:
         raise ValueError(
             f"transmat {a.tolist()} has no unique stationary distribution (the chain has more than one "
             "closed class, e.g. no transition between the states was ever observed)"
@@ -463,3 +466,71 @@ class LosoEnsemble:
         ens.oof_posteriors_ = [np.asarray(p, dtype=np.float64) for p in data["oof_posteriors"]]
         ens.threshold_ = float(data["threshold"])
         return ens
+
+
+# --------------------------------------------------------------------------------------------
+# Streaming (frame-by-frame) causal filter
+# --------------------------------------------------------------------------------------------
+
+
+class StreamingFilter:
+    """``forward_filter`` fed one observation at a time, for one model or the mean of an ensemble.
+
+    ``update(x)`` returns P(contact | x_1..x_t) for the frame just given (NaN x = no observation:
+    the one-step prediction), equal to ``forward_filter`` on the whole sequence so far, bit for bit:
+    the recursion performs the same floating-point operations in the same order. With an ensemble
+    the value is the mean over its K models, as ``LosoEnsemble.predict_proba`` computes it.
+    Memory is O(K), whatever the sequence length.
+    """
+
+    def __init__(self, model: SupervisedGaussianHMM | LosoEnsemble) -> None:
+        if isinstance(model, LosoEnsemble):
+            model._check_fitted()
+            models = list(model.models_)
+        elif isinstance(model, SupervisedGaussianHMM):
+            model._check_fitted()
+            models = [model]
+        else:
+            raise TypeError(
+                f"model: expected a fitted SupervisedGaussianHMM or LosoEnsemble, got {type(model).__name__}"
+            )
+        self._params = [_check_model(m.means_, m.vars_, m.transmat_, m.startprob_) for m in models]
+        self._log_odds: list[float] | None = None  # per model, after the last update; None before the first
+        self.frames = 0
+
+    def reset(self) -> None:
+        """Forget every observation (the next update is frame 0 again)."""
+        self._log_odds = None
+        self.frames = 0
+
+    def update(self, x: float) -> float:
+        """Add the next frame's signal ``x`` (dec; NaN = missing) and return the filtered P(contact)."""
+        x = float(x)
+        if math.isinf(x):
+            raise ValueError(f"x: expected a finite signal value or NaN, got {x!r}")
+        exp, log_q = math.exp, _log_or_minus_inf
+        new = []
+        for k, (means, vars_, trans, start) in enumerate(self._params):
+            llr = float(emission_log_likelihood_ratio(np.array([x]), means, vars_)[0])
+            if math.isnan(llr):
+                llr = 0.0
+            if self._log_odds is None:
+                z = log_q(float(start[1])) - log_q(float(start[0])) + llr
+            else:
+                z = self._log_odds[k]
+                e = exp(-abs(z))
+                if z >= 0:
+                    p1, p0 = 1.0 / (1.0 + e), e / (1.0 + e)
+                else:
+                    p1, p0 = e / (1.0 + e), 1.0 / (1.0 + e)
+                q1 = p0 * float(trans[0, 1]) + p1 * float(trans[1, 1])
+                q0 = p0 * float(trans[0, 0]) + p1 * float(trans[1, 0])
+                z = log_q(q1) - log_q(q0) + llr
+            new.append(z)
+        self._log_odds = new
+        self.frames += 1
+        posteriors = _sigmoid(np.asarray(new, dtype=np.float64))
+        total = posteriors[0]
+        for value in posteriors[1:]:  # the same order of additions as np.mean(..., axis=0) over the stack
+            total = total + value
+        return float(total / len(new))

@@ -302,13 +302,7 @@ def _read_session_json(path: Path) -> dict:
         raise SessionError(
             path, f"expected a JSON object with keys {list(_SESSION_JSON_KEYS)}, found {type(data).__name__}"
         )
-    unknown = sorted(set(data) - set(_SESSION_JSON_KEYS))
-    if unknown:
-        warnings.warn(
-            f"{path}: ignoring unknown key(s) {unknown}; known keys are {list(_SESSION_JSON_KEYS)}",
-            SessionWarning,
-            stacklevel=3,
-        )
+    # Other keys (e.g. the generator's settings in synthetic sessions) are free-form metadata.
     for key in ("name", "phantom", "task"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise SessionError(path, f"expected \"{key}\" to be a string, found {data[key]!r}")

@@ -1,0 +1,453 @@
+"""The ONE module that calls Rerun: entity paths, the default blueprint, and what is logged per frame.
+
+Everything here receives an explicit ``rr.RecordingStream`` and objects the pipeline already
+computed (the session, :class:`~contact_viz.extract.FrameResult`, a :class:`FrameView` of
+display-ready arrays, diagnostics); it computes no geometry and no posterior itself.
+
+Entity tree (the README lists it too)::
+
+    world                          ViewCoordinates RDF, AnnotationContext of the layer classes (static)
+    world/camera/left              Pinhole from K.txt (static)
+    world/camera/left/image        left image: EncodedImage (JPEG) or Image (--raw-images)
+    world/camera/left/layers       SegmentationImage of the layer classes (full resolution)
+    world/camera/left/patch        Boxes2D: the N2 window of the selected patch, labelled with its distance
+    world/camera/right             Transform3D (baseline along +x) + Pinhole (static)
+    world/camera/right/image       right image
+    world/camera/depth             Pinhole of the decimated depth grid (K / depth step, static)
+    world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m)
+    world/camera/depth/layers      SegmentationImage of the layer classes on the depth grid
+    world/camera/depth/patch       Boxes2D: the patch window on the depth grid
+    world/cloud/near, world/cloud/far   Points3D: RGB cloud, full density near the patch / voxel-merged elsewhere
+    world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
+    world/patch/tool               Points3D: interior pixels whose depths gave the tool depth
+    world/patch/gap                Arrows3D: tool depth -> tissue along the patch centre's ray
+    series/distance                Scalars: patch distance, mm
+    series/signal                  Scalars: -log10(max(|d|, eps))
+    series/force/{magnitude,x,y,z} Scalars: force, N (send_columns, known up front)
+    series/contact/truth           Scalars: ground-truth contact 0/1 (send_columns)
+    series/contact/posterior       Scalars: causal HMM posterior (only with a model)
+    series/contact/threshold       Scalars: decision threshold (send_columns, only with a model)
+    series/contact/predicted       Scalars: posterior >= threshold, 0/1 (only with a model)
+    series/diagnostics/invalid_depth_fraction   Scalars: share of band pixels with invalid depth
+    series/diagnostics/<code>      Scalars (points): a marker at each frame where that check fired
+    log                            TextLog: bad frames, diagnostics, the no-model hint
+
+Timelines: ``frame`` (sequence, the frame's index in the session) and ``time`` (duration, s).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from contact_viz.diagnostics import DIAGNOSTIC_CODES, Diagnostic
+from contact_viz.pointcloud import Cloud, PatchGeometry
+from contact_viz.session import BadFrame, Session
+from contact_viz.style import DIAGNOSTIC_STYLES, LAYER_OVERLAY_OPACITY, LAYER_STYLES, PATCH_STYLES, SERIES_STYLES
+
+__all__ = [
+    "APPLICATION_ID",
+    "ENTITY_CLOUD_FAR",
+    "ENTITY_CLOUD_NEAR",
+    "ENTITY_DEPTH_CAMERA",
+    "ENTITY_DEPTH_IMAGE",
+    "ENTITY_DEPTH_LAYERS",
+    "ENTITY_DEPTH_PATCH",
+    "ENTITY_LEFT_CAMERA",
+    "ENTITY_LEFT_IMAGE",
+    "ENTITY_LEFT_LAYERS",
+    "ENTITY_LEFT_PATCH",
+    "ENTITY_LOG",
+    "ENTITY_PATCH_GAP",
+    "ENTITY_PATCH_TISSUE",
+    "ENTITY_PATCH_TOOL",
+    "ENTITY_RIGHT_CAMERA",
+    "ENTITY_RIGHT_IMAGE",
+    "ENTITY_SERIES_CONTACT",
+    "ENTITY_SERIES_DIAGNOSTICS",
+    "ENTITY_SERIES_DISTANCE",
+    "ENTITY_SERIES_FORCE",
+    "ENTITY_SERIES_INVALID_DEPTH",
+    "ENTITY_SERIES_POSTERIOR",
+    "ENTITY_SERIES_PREDICTED",
+    "ENTITY_SERIES_SIGNAL",
+    "ENTITY_SERIES_THRESHOLD",
+    "ENTITY_SERIES_TRUTH",
+    "ENTITY_WORLD",
+    "FORCE_ENTITIES",
+    "FrameView",
+    "MODEL_HINT",
+    "TIMELINE_FRAME",
+    "TIMELINE_TIME",
+    "default_blueprint",
+    "diagnostic_entity",
+    "log_bad_frame",
+    "log_frame",
+    "log_model_hint",
+    "log_static",
+    "send_known_series",
+    "set_frame_time",
+]
+
+APPLICATION_ID = "contact_viz"  # Rerun application id of every recording
+
+ENTITY_WORLD = "world"
+ENTITY_LEFT_CAMERA = "world/camera/left"
+ENTITY_LEFT_IMAGE = "world/camera/left/image"
+ENTITY_LEFT_LAYERS = "world/camera/left/layers"
+ENTITY_LEFT_PATCH = "world/camera/left/patch"
+ENTITY_RIGHT_CAMERA = "world/camera/right"
+ENTITY_RIGHT_IMAGE = "world/camera/right/image"
+ENTITY_DEPTH_CAMERA = "world/camera/depth"
+ENTITY_DEPTH_IMAGE = "world/camera/depth/image"
+ENTITY_DEPTH_LAYERS = "world/camera/depth/layers"
+ENTITY_DEPTH_PATCH = "world/camera/depth/patch"
+ENTITY_CLOUD_NEAR = "world/cloud/near"
+ENTITY_CLOUD_FAR = "world/cloud/far"
+ENTITY_PATCH_TISSUE = "world/patch/tissue"
+ENTITY_PATCH_TOOL = "world/patch/tool"
+ENTITY_PATCH_GAP = "world/patch/gap"
+ENTITY_SERIES_DISTANCE = "series/distance"
+ENTITY_SERIES_SIGNAL = "series/signal"
+ENTITY_SERIES_FORCE = "series/force"
+FORCE_ENTITIES = {  # force series entity -> SERIES_STYLES key
+    "series/force/magnitude": "force_n",
+    "series/force/x": "force_x_n",
+    "series/force/y": "force_y_n",
+    "series/force/z": "force_z_n",
+}
+ENTITY_SERIES_CONTACT = "series/contact"
+ENTITY_SERIES_TRUTH = "series/contact/truth"
+ENTITY_SERIES_POSTERIOR = "series/contact/posterior"
+ENTITY_SERIES_THRESHOLD = "series/contact/threshold"
+ENTITY_SERIES_PREDICTED = "series/contact/predicted"
+ENTITY_SERIES_DIAGNOSTICS = "series/diagnostics"
+ENTITY_SERIES_INVALID_DEPTH = "series/diagnostics/invalid_depth_fraction"
+ENTITY_LOG = "log"
+
+TIMELINE_FRAME = "frame"  # sequence timeline: frame index in the session
+TIMELINE_TIME = "time"  # duration timeline: session time, s
+
+MM_PER_M = 1000.0  # millimetres per metre
+IMAGE_PLANE_DISTANCE_M = 0.015  # how far from each camera its image is drawn in the 3D view, m
+GAP_ARROW_RADIUS_M = 0.0002  # shaft radius of the gap arrow, m
+BOX_LINE_RADIUS_PX = 1.5  # half line width of the patch box, UI px (negative radii in Rerun = UI units)
+
+MODEL_HINT = (
+    "No contact model given, so there is no HMM posterior. Fit one on labelled training sessions with "
+    "`contact-viz fit TRAIN_SESSION... -o model.json`, then add `--model model.json`."
+)
+
+# Per-frame entities, cleared at a bad frame so the viewer does not show the previous frame's data.
+PER_FRAME_ENTITIES = (
+    ENTITY_LEFT_IMAGE, ENTITY_LEFT_LAYERS, ENTITY_LEFT_PATCH, ENTITY_RIGHT_IMAGE, ENTITY_DEPTH_IMAGE,
+    ENTITY_DEPTH_LAYERS, ENTITY_DEPTH_PATCH, ENTITY_CLOUD_NEAR, ENTITY_CLOUD_FAR, ENTITY_PATCH_TISSUE,
+    ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP,
+)
+PATCH_ENTITIES = (ENTITY_LEFT_PATCH, ENTITY_DEPTH_PATCH, ENTITY_PATCH_TISSUE, ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP)
+
+
+def diagnostic_entity(code: str) -> str:
+    """Entity path of the marker series of diagnostic ``code``."""
+    return f"{ENTITY_SERIES_DIAGNOSTICS}/{code}"
+
+
+def _diagnostic_level(code: str) -> float:
+    """Height of a diagnostic's markers: its position in DIAGNOSTIC_CODES, 1-based (a raster plot)."""
+    return float(list(DIAGNOSTIC_CODES).index(code) + 1)
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """Display-ready data of one readable frame, prepared by the debugger (see contact_viz.debugger)."""
+
+    left_jpeg: bytes | None  # left image as JPEG bytes, or None
+    left_rgb: np.ndarray | None  # left image as (H, W, 3) uint8 RGB (raw mode), or None
+    right_jpeg: bytes | None  # right image as JPEG bytes, or None
+    right_rgb: np.ndarray | None  # right image as (H, W, 3) uint8 RGB (raw mode), or None
+    depth_u16: np.ndarray  # (h, w) uint16 decimated depth, 1 unit = 1 / depth_units_per_m m, 0 = invalid
+    depth_units_per_m: float  # units of depth_u16 per metre
+    depth_layers: np.ndarray  # (h, w) uint8 layer ids on the decimated depth grid
+    depth_window_xyxy: tuple[float, float, float, float] | None  # patch window on the depth grid, px
+    cloud: Cloud | None  # RGB point cloud (None = not logged)
+    geometry: PatchGeometry | None  # the patch in 3D (None = no patch)
+    posterior: float | None  # causal HMM posterior P(contact) (None = no model)
+    predicted: bool | None  # posterior >= threshold (None = no model)
+    diagnostics: Sequence[Diagnostic] = ()  # checks that fired at this frame
+    has_right: bool = False  # the session has a right image here (if right_* are None it is cleared)
+    notes: Sequence[str] = ()  # other warnings of this frame (e.g. an unreadable right image)
+
+
+# --------------------------------------------------------------------------------------------
+# Static data and the blueprint
+# --------------------------------------------------------------------------------------------
+
+
+def _series_lines(key: str) -> rr.SeriesLines:
+    style = SERIES_STYLES[key]
+    return rr.SeriesLines(
+        colors=[style.rgba], widths=[style.width_px], names=[style.name],
+        interpolation_mode=rr.components.InterpolationMode.StepAfter if style.step else None,
+    )
+
+
+def log_static(
+    rec: rr.RecordingStream,
+    session: Session,
+    *,
+    depth_step: int,
+    depth_K: np.ndarray,
+    with_right: bool,
+    with_model: bool,
+) -> None:
+    """Log what never changes: view coordinates, layer classes, cameras and the series' styles.
+
+    ``depth_K`` is the camera matrix of the decimated depth grid (every ``depth_step``-th pixel).
+    """
+    rec.send_recording_name(session.name)
+    rec.log(
+        ENTITY_WORLD,
+        rr.ViewCoordinates.RDF,
+        rr.AnnotationContext(
+            [rr.AnnotationInfo(id=s.class_id, label=s.name, color=s.rgba) for s in LAYER_STYLES]
+        ),
+        static=True,
+    )
+    height, width = session.image_size
+    K = np.asarray(session.calibration.K, dtype=np.float64)
+    pinhole = dict(camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=IMAGE_PLANE_DISTANCE_M)
+    rec.log(ENTITY_LEFT_CAMERA, rr.Pinhole(image_from_camera=K, resolution=[width, height], **pinhole), static=True)
+    depth_h, depth_w = -(-height // depth_step), -(-width // depth_step)
+    rec.log(ENTITY_DEPTH_CAMERA, rr.Pinhole(image_from_camera=depth_K, resolution=[depth_w, depth_h], **pinhole),
+            static=True)
+    if with_right:
+        rec.log(
+            ENTITY_RIGHT_CAMERA,
+            rr.Transform3D(translation=[session.calibration.baseline_m, 0.0, 0.0]),
+            rr.Pinhole(image_from_camera=K, resolution=[width, height], **pinhole),
+            static=True,
+        )
+    rec.log(ENTITY_SERIES_DISTANCE, _series_lines("distance_mm"), static=True)
+    rec.log(ENTITY_SERIES_SIGNAL, _series_lines("signal"), static=True)
+    for entity, key in FORCE_ENTITIES.items():
+        rec.log(entity, _series_lines(key), static=True)
+    rec.log(ENTITY_SERIES_TRUTH, _series_lines("contact_truth"), static=True)
+    if with_model:
+        rec.log(ENTITY_SERIES_POSTERIOR, _series_lines("posterior"), static=True)
+        rec.log(ENTITY_SERIES_THRESHOLD, _series_lines("threshold"), static=True)
+        rec.log(ENTITY_SERIES_PREDICTED, _series_lines("predicted"), static=True)
+    rec.log(ENTITY_SERIES_INVALID_DEPTH, _series_lines("invalid_depth_fraction"), static=True)
+    markers = list(rr.components.MarkerShape)
+    for k, code in enumerate(DIAGNOSTIC_CODES):
+        style = DIAGNOSTIC_STYLES[code]
+        rec.log(
+            diagnostic_entity(code),
+            rr.SeriesPoints(colors=[style.rgba], names=[style.name], markers=[markers[k % len(markers)]],
+                            marker_sizes=[style.width_px]),
+            static=True,
+        )
+
+
+def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rrb.Blueprint:
+    """The layout sent with every recording: images and 3D on the left, stacked time series on the right.
+
+    Left column: left image with the layer overlay and the patch box, right image, depth with the
+    same overlay, and the 3D scene (RGB cloud, patch points, gap arrow, camera frustums; the depth
+    image's own back-projection is in the scene but hidden until toggled on). Right
+    column: distance, signal, force, contact (truth / posterior / threshold / prediction) and
+    diagnostics, all on the global ``frame`` axis, then the text log.
+    """
+    linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
+    left = rrb.Spatial2DView(name="left + layers", origin=ENTITY_LEFT_CAMERA)
+    depth = rrb.Spatial2DView(name="depth + layers", origin=ENTITY_DEPTH_CAMERA)
+    scene = rrb.Spatial3DView(
+        name="3D",
+        origin=ENTITY_WORLD,
+        contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}", f"- {ENTITY_LEFT_PATCH}", f"- {ENTITY_DEPTH_LAYERS}",
+                  f"- {ENTITY_DEPTH_PATCH}"],
+        # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
+        overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
+        line_grid=rrb.LineGrid3D(visible=False),
+    )
+    images = rrb.Horizontal(left, rrb.Spatial2DView(name="right", origin=ENTITY_RIGHT_CAMERA)) if with_right else left
+    contact_name = "contact: truth, posterior, threshold, prediction" if with_model else "contact: ground truth"
+    series = [
+        rrb.TimeSeriesView(name="distance (mm)", origin=ENTITY_SERIES_DISTANCE, axis_x=linked),
+        rrb.TimeSeriesView(name="signal", origin=ENTITY_SERIES_SIGNAL, axis_x=linked),
+        rrb.TimeSeriesView(name="force (N)", origin=ENTITY_SERIES_FORCE, axis_x=linked),
+        rrb.TimeSeriesView(name=contact_name, origin=ENTITY_SERIES_CONTACT, axis_x=linked,
+                           axis_y=rrb.ScalarAxis(range=(-0.05, 1.05))),
+        rrb.TimeSeriesView(name="diagnostics", origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked),
+        rrb.TextLogView(name="log", origin=ENTITY_LOG),
+    ]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(images, rrb.Horizontal(depth, scene), row_shares=[1, 1]),
+            rrb.Vertical(*series, row_shares=[1, 1, 1, 1, 1, 0.8]),
+            column_shares=[3, 2],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE_FRAME),
+    )
+
+
+def send_known_series(
+    rec: rr.RecordingStream, session: Session, indices: Sequence[int], *, threshold: float | None = None
+) -> None:
+    """Send the series known before any frame is read, as columns over the frames ``indices``.
+
+    Force magnitude and components (N; skipped when the session has no force), ground-truth
+    contact (0/1, NaN where unknown) and, with a model, its decision ``threshold``.
+    """
+    idx = np.asarray(indices, dtype=np.int64)
+    if idx.size == 0:
+        return
+    times = [
+        rr.TimeColumn(TIMELINE_FRAME, sequence=idx),
+        rr.TimeColumn(TIMELINE_TIME, duration=np.asarray(session.timestamps_s, dtype=np.float64)[idx]),
+    ]
+    force = np.asarray(session.force_xyz_n, dtype=np.float64)[idx]
+    if np.isfinite(force).any():
+        columns = {
+            "series/force/magnitude": np.asarray(session.force_n, dtype=np.float64)[idx],
+            "series/force/x": force[:, 0],
+            "series/force/y": force[:, 1],
+            "series/force/z": force[:, 2],
+        }
+        for entity, values in columns.items():
+            rec.send_columns(entity, indexes=times, columns=rr.Scalars.columns(scalars=values))
+    labels = np.asarray(session.labels)[idx]
+    if (labels >= 0).any():
+        truth = np.where(labels >= 0, labels, np.nan).astype(np.float64)
+        rec.send_columns(ENTITY_SERIES_TRUTH, indexes=times, columns=rr.Scalars.columns(scalars=truth))
+    if threshold is not None:
+        rec.send_columns(ENTITY_SERIES_THRESHOLD, indexes=times,
+                         columns=rr.Scalars.columns(scalars=np.full(idx.size, float(threshold))))
+
+
+def log_model_hint(rec: rr.RecordingStream, index: int, timestamp_s: float) -> None:
+    """Say (TextLog, at frame ``index``) that there is no model and how to get one."""
+    set_frame_time(rec, index, timestamp_s)
+    rec.log(ENTITY_LOG, rr.TextLog(MODEL_HINT, level=rr.TextLogLevel.INFO))
+
+
+# --------------------------------------------------------------------------------------------
+# Per frame
+# --------------------------------------------------------------------------------------------
+
+
+def set_frame_time(rec: rr.RecordingStream, index: int, timestamp_s: float) -> None:
+    """Put the recording at frame ``index`` (``frame`` timeline) and ``timestamp_s`` (``time`` timeline)."""
+    rec.set_time(TIMELINE_FRAME, sequence=int(index))
+    rec.set_time(TIMELINE_TIME, duration=float(timestamp_s))
+
+
+def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None) -> None:
+    if jpeg is not None:
+        rec.log(entity, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
+    elif rgb is not None:
+        rec.log(entity, rr.Image(rgb, color_model="RGB"))
+    else:
+        rec.log(entity, rr.Clear(recursive=False))
+
+
+def _box(window: tuple[float, float, float, float], label: str) -> rr.Boxes2D:
+    x0, y0, x1, y1 = window
+    return rr.Boxes2D(mins=[[x0, y0]], sizes=[[x1 - x0, y1 - y0]], labels=[label],
+                      colors=[PATCH_STYLES["window"]], radii=[-BOX_LINE_RADIUS_PX])
+
+
+def _log_series(rec: rr.RecordingStream, entity: str, value: float) -> None:
+    rec.log(entity, rr.Scalars(float(value)))
+
+
+def _log_contact(rec: rr.RecordingStream, posterior: float | None, predicted: bool | None) -> None:
+    if posterior is not None:
+        _log_series(rec, ENTITY_SERIES_POSTERIOR, posterior)
+    if predicted is not None:
+        _log_series(rec, ENTITY_SERIES_PREDICTED, 1.0 if predicted else 0.0)
+
+
+def _log_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic], notes: Sequence[str]) -> None:
+    for diagnostic in diagnostics:
+        _log_series(rec, diagnostic_entity(diagnostic.code), _diagnostic_level(diagnostic.code))
+        if diagnostic.code != "bad_frame":  # log_bad_frame writes that one's text
+            rec.log(ENTITY_LOG, rr.TextLog(f"frame {diagnostic.index}: {diagnostic.message}",
+                                           level=rr.TextLogLevel.WARN))
+    for note in notes:
+        rec.log(ENTITY_LOG, rr.TextLog(note, level=rr.TextLogLevel.WARN))
+
+
+def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
+    """Log one readable frame: ``result`` is its FrameResult (frame + patch), ``view`` its display data."""
+    frame, patch = result.frame, result.patch
+    if patch is None:
+        raise ValueError(f"log_frame: frame {frame.index} has no patch result (a bad frame); use log_bad_frame")
+    set_frame_time(rec, frame.index, frame.timestamp_s)
+
+    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb)
+    rec.log(ENTITY_LEFT_LAYERS, rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
+    if view.has_right:
+        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb)
+    rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m))
+    rec.log(ENTITY_DEPTH_LAYERS, rr.SegmentationImage(view.depth_layers, opacity=LAYER_OVERLAY_OPACITY))
+
+    if view.cloud is not None:
+        cloud = view.cloud
+        rec.log(ENTITY_CLOUD_NEAR, rr.Points3D(cloud.near_points_m, colors=cloud.near_colors,
+                                               radii=[cloud.near_radius_m]))
+        rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
+                                              radii=[cloud.far_radius_m]))
+
+    geometry = view.geometry
+    if patch.window_xyxy is not None and geometry is not None:
+        label = f"{patch.distance_m * MM_PER_M:.1f} mm"
+        rec.log(ENTITY_LEFT_PATCH, _box(patch.window_xyxy, label))
+        if view.depth_window_xyxy is not None:
+            rec.log(ENTITY_DEPTH_PATCH, _box(view.depth_window_xyxy, label))
+        radii = [geometry.point_radius_m]
+        rec.log(ENTITY_PATCH_TISSUE, rr.Points3D(geometry.tissue_points_m, colors=[PATCH_STYLES["tissue_points"]],
+                                                 radii=radii))
+        rec.log(ENTITY_PATCH_TOOL, rr.Points3D(geometry.tool_points_m, colors=[PATCH_STYLES["tool_points"]],
+                                               radii=radii))
+        rec.log(ENTITY_PATCH_GAP, rr.Arrows3D(origins=[geometry.gap_origin_m], vectors=[geometry.gap_vector_m],
+                                              colors=[PATCH_STYLES["gap"]], labels=[label],
+                                              radii=[GAP_ARROW_RADIUS_M]))
+    else:
+        for entity in PATCH_ENTITIES:
+            rec.log(entity, rr.Clear(recursive=False))
+
+    _log_series(rec, ENTITY_SERIES_DISTANCE, patch.distance_m * MM_PER_M)
+    _log_series(rec, ENTITY_SERIES_SIGNAL, patch.signal)
+    _log_series(rec, ENTITY_SERIES_INVALID_DEPTH, patch.invalid_depth_fraction)
+    _log_contact(rec, view.posterior, view.predicted)
+    _log_diagnostics(rec, view.diagnostics, view.notes)
+
+
+def log_bad_frame(
+    rec: rr.RecordingStream,
+    frame: BadFrame,
+    *,
+    posterior: float | None = None,
+    predicted: bool | None = None,
+    diagnostics: Sequence[Diagnostic] = (),
+) -> None:
+    """Log a frame that could not be read: a warning naming the file, cleared images, gaps in the series.
+
+    The posterior (a prediction step, with a model) is still logged: the filter runs on.
+    """
+    set_frame_time(rec, frame.index, frame.timestamp_s)
+    rec.log(ENTITY_LOG, rr.TextLog(f"frame {frame.index} ({frame.stem}) could not be read and was skipped: "
+                                   f"{frame.reason}", level=rr.TextLogLevel.WARN))
+    for entity in PER_FRAME_ENTITIES:
+        rec.log(entity, rr.Clear(recursive=False))
+    for entity in (ENTITY_SERIES_DISTANCE, ENTITY_SERIES_SIGNAL, ENTITY_SERIES_INVALID_DEPTH):
+        _log_series(rec, entity, math.nan)
+    _log_contact(rec, posterior, predicted)
+    _log_diagnostics(rec, diagnostics, ())

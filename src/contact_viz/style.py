@@ -1,0 +1,120 @@
+"""Names and colours of everything the viewer and the paper figures draw: the ONE source of both.
+
+Layer classes are the ``LAYER_*`` ids of :class:`contact_viz.patch.PatchResult.layer_ids`; the
+Rerun ``AnnotationContext`` and the figure legends are both built from :data:`LAYER_STYLES`, so a
+class is called and coloured the same everywhere. Colours are the colour-blind-safe Okabe-Ito
+palette, as 8-bit RGBA tuples; :func:`to_float_rgba` converts one for matplotlib.
+
+Pure data: no imports beyond the patch ids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from contact_viz.patch import LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE
+
+__all__ = [
+    "DIAGNOSTIC_STYLES",
+    "LAYER_OVERLAY_OPACITY",
+    "LAYER_STYLES",
+    "PATCH_STYLES",
+    "SERIES_STYLES",
+    "LayerStyle",
+    "SeriesStyle",
+    "layer_style",
+    "to_float_rgba",
+]
+
+RGBA = tuple[int, int, int, int]
+
+# Okabe-Ito colour-blind-safe palette, 8-bit RGBA.
+BLACK: RGBA = (0, 0, 0, 255)
+ORANGE: RGBA = (230, 159, 0, 255)
+SKY_BLUE: RGBA = (86, 180, 233, 255)
+BLUISH_GREEN: RGBA = (0, 158, 115, 255)
+YELLOW: RGBA = (240, 228, 66, 255)
+BLUE: RGBA = (0, 114, 178, 255)
+VERMILLION: RGBA = (213, 94, 0, 255)
+REDDISH_PURPLE: RGBA = (204, 121, 167, 255)
+GREY: RGBA = (150, 150, 150, 255)
+DARK_GREY: RGBA = (60, 60, 60, 255)
+TRANSPARENT: RGBA = (0, 0, 0, 0)
+
+LAYER_OVERLAY_OPACITY = 0.55  # opacity of the layer overlay drawn over the left image and the depth image, 0-1
+
+
+@dataclass(frozen=True)
+class LayerStyle:
+    """One class of the layer image."""
+
+    class_id: int  # LAYER_* id in PatchResult.layer_ids
+    name: str  # label shown in the viewer and figure legends
+    rgba: RGBA  # colour, 8-bit RGBA (alpha 0 = not drawn)
+
+
+LAYER_STYLES: tuple[LayerStyle, ...] = (
+    LayerStyle(LAYER_BACKGROUND, "background", TRANSPARENT),
+    LayerStyle(LAYER_INTERIOR, "tool interior", BLUE),
+    LayerStyle(LAYER_TOOL_EDGE, "tool edge (excluded)", SKY_BLUE),
+    LayerStyle(LAYER_RING, "excluded ring", YELLOW),
+    LayerStyle(LAYER_BAND, "exterior band", BLUISH_GREEN),
+)
+
+
+def layer_style(class_id: int) -> LayerStyle:
+    """The style of layer class ``class_id`` (a LAYER_* id); KeyError naming the known ids otherwise."""
+    for style in LAYER_STYLES:
+        if style.class_id == class_id:
+            return style
+    raise KeyError(f"no layer class {class_id!r}; known ids: {[s.class_id for s in LAYER_STYLES]}")
+
+
+# The selected patch and its 3D evidence.
+PATCH_STYLES: dict[str, RGBA] = {
+    "window": VERMILLION,  # the N2 window of the selected patch (2D box)
+    "tissue_points": BLUISH_GREEN,  # band pixels of the N2 window whose distance entered the median (3D)
+    "tool_points": BLUE,  # interior pixels of N1 whose depth gave the tool depth (3D)
+    "gap": VERMILLION,  # arrow from the tool depth to the tissue along the patch centre's ray (3D)
+}
+
+
+@dataclass(frozen=True)
+class SeriesStyle:
+    """How one time series is drawn."""
+
+    name: str  # legend name
+    rgba: RGBA  # line / marker colour, 8-bit RGBA
+    width_px: float  # line width (or marker size for point series), UI px
+    step: bool = False  # drawn as a step function (0/1 states) instead of a straight-line interpolation
+
+
+# Keys are the series' short names, used by the viewer to pick entity paths.
+SERIES_STYLES: dict[str, SeriesStyle] = {
+    "distance_mm": SeriesStyle("distance (mm)", VERMILLION, 2.0),
+    "signal": SeriesStyle("signal -log10|d|", REDDISH_PURPLE, 2.0),
+    "force_n": SeriesStyle("|F| (N)", DARK_GREY, 2.0),
+    "force_x_n": SeriesStyle("Fx (N)", BLUE, 1.0),
+    "force_y_n": SeriesStyle("Fy (N)", BLUISH_GREEN, 1.0),
+    "force_z_n": SeriesStyle("Fz (N)", ORANGE, 1.0),
+    "contact_truth": SeriesStyle("ground truth contact", DARK_GREY, 2.0, step=True),
+    "posterior": SeriesStyle("HMM posterior P(contact)", BLUE, 2.0),
+    "threshold": SeriesStyle("decision threshold", GREY, 1.0),
+    "predicted": SeriesStyle("predicted contact", VERMILLION, 1.5, step=True),
+    "invalid_depth_fraction": SeriesStyle("invalid depth in band (fraction)", GREY, 1.5),
+}
+
+# One colour per diagnostic code (contact_viz.diagnostics), drawn as markers where the check fires.
+DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
+    "bad_frame": SeriesStyle("bad frame", BLACK, 6.0),
+    "no_tool": SeriesStyle("no tool in mask", SKY_BLUE, 6.0),
+    "mask_area_jump": SeriesStyle("mask area jump", ORANGE, 6.0),
+    "invalid_depth": SeriesStyle("invalid depth in band", GREY, 6.0),
+    "no_patch": SeriesStyle("no valid patch", REDDISH_PURPLE, 6.0),
+    "distance_jump": SeriesStyle("distance jump", VERMILLION, 6.0),
+}
+
+
+def to_float_rgba(rgba: RGBA) -> tuple[float, float, float, float]:
+    """An 8-bit RGBA colour as floats in [0, 1] (matplotlib's form)."""
+    return tuple(channel / 255.0 for channel in rgba)  # type: ignore[return-value]
