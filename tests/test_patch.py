@@ -272,3 +272,18 @@ def test_params_validation():
         PatchParams(n1=15)
     with pytest.raises(ValueError, match="tau_patch"):
         PatchParams(tau_patch=17 * 17 + 1)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_distance_grid_equals_one_call_per_parameter_set(seed):
+    from itertools import product
+
+    from contact_viz.patch import patch_distance_grid
+
+    rng = np.random.default_rng(500 + seed)
+    depth, tool = random_frame(rng, 40, 52)
+    grid = [PatchParams(n1=n1, n2=n2, tau_tool=tt, tau_patch=tp, erosion_px=1.0, ring_px=1.0,
+                        band_scale=0.25, band_min_px=1.0, band_max_px=2.0)
+            for n1, tt, n2, tp in product((11, 15), (3, 8), (3, 5), (2, 5))]
+    expected = [compute_patch(depth, tool, p).distance_m for p in grid]
+    np.testing.assert_array_equal(patch_distance_grid(depth, tool, grid), expected)

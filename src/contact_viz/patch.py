@@ -32,6 +32,7 @@ whole frame), with integral images gathered only at band pixels.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -173,6 +174,126 @@ def _empty_result(shape: tuple[int, int], reason: str, layer_ids: np.ndarray | N
     )
 
 
+@dataclass(frozen=True)
+class _Layers:
+    """The layers of one frame on the padded tool crop (see compute_patch); internal."""
+
+    shape: tuple[int, int]  # full frame (H, W)
+    origin_yx: tuple[int, int]  # crop's top-left corner in the frame, px
+    crop_shape: tuple[int, int]
+    layer_ids: np.ndarray  # (H, W) uint8, full frame
+    depth_c: np.ndarray  # (h, w) float64 crop of the depth
+    by: np.ndarray  # (N,) band pixel rows in the crop, row-major order
+    bx: np.ndarray  # (N,) band pixel columns in the crop
+    band_valid: np.ndarray  # (N,) bool: valid depth at the band pixel
+    tool_sum_int: np.ndarray  # (h+1, w+1) integral of valid interior depth, m
+    tool_cnt_int: np.ndarray  # (h+1, w+1) integral of the valid interior count
+    shaft_width_px: float
+    band_width_px: float
+
+
+def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams) -> _Layers | PatchResult:
+    """Interior, ring and band of one frame, or the empty PatchResult when there is no band."""
+    _check_inputs(depth_m, tool_mask)
+    shape = depth_m.shape
+    height, width = shape
+    tool = tool_mask if tool_mask.dtype == np.bool_ else tool_mask != 0
+
+    rows = np.flatnonzero(tool.any(axis=1))
+    if rows.size == 0:
+        return _empty_result(shape, REASON_EMPTY_MASK)
+    cols = np.flatnonzero(tool.any(axis=0))
+
+    # Work on the tool's bounding box padded by the band's reach: every interior, ring and band
+    # pixel lies inside it, so windows clipped to it lose nothing that could contribute.
+    pad = int(np.ceil(params.outer_reach_px)) + 1
+    y0, y1 = int(max(rows[0] - pad, 0)), int(min(rows[-1] + pad + 1, height))
+    x0, x1 = int(max(cols[0] - pad, 0)), int(min(cols[-1] + pad + 1, width))
+    tool_c = tool[y0:y1, x0:x1]
+    depth_c = depth_m[y0:y1, x0:x1].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        valid_c = np.isfinite(depth_c) & (depth_c > 0)
+
+    tool_u8 = np.ascontiguousarray(tool_c).view(np.uint8)
+    layer_c = np.zeros(tool_c.shape, np.uint8)
+    layer_ids = np.zeros(shape, np.uint8)
+    if tool_c.all():
+        # No background anywhere near the tool: nothing to erode against and no band.
+        layer_ids[y0:y1, x0:x1] = LAYER_INTERIOR
+        return _empty_result(shape, REASON_NO_BAND, layer_ids)
+
+    dist_in = cv2.distanceTransform(tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # tool px -> background
+    dist_out = cv2.distanceTransform(1 - tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # background px -> tool
+    shaft_width = float(2.0 * dist_in.max() - 1.0)
+    band_w = band_width_px(shaft_width, params)
+
+    interior_c = dist_in > params.erosion_px
+    band_c = (dist_out > params.ring_px) & (dist_out <= params.ring_px + band_w)
+    layer_c[tool_c] = LAYER_TOOL_EDGE
+    layer_c[interior_c] = LAYER_INTERIOR
+    layer_c[~tool_c & (dist_out <= params.ring_px)] = LAYER_RING
+    layer_c[band_c] = LAYER_BAND
+    layer_ids[y0:y1, x0:x1] = layer_c
+
+    by, bx = np.nonzero(band_c)
+    if by.size == 0:
+        return _empty_result(shape, REASON_NO_BAND, layer_ids, shaft_width, band_w)
+    tool_w = interior_c & valid_c
+    return _Layers(
+        shape=shape, origin_yx=(y0, x0), crop_shape=tool_c.shape, layer_ids=layer_ids, depth_c=depth_c,
+        by=by, bx=bx, band_valid=valid_c[by, bx],
+        tool_sum_int=cv2.integral(np.where(tool_w, depth_c, 0.0), sdepth=cv2.CV_64F),
+        tool_cnt_int=cv2.integral(tool_w.astype(np.uint8), sdepth=cv2.CV_32S),
+        shaft_width_px=shaft_width, band_width_px=band_w,
+    )
+
+
+def _band_distances(layers: _Layers, n1: int, tau_tool: int) -> tuple[np.ndarray, np.ndarray]:
+    """d(p) at every band pixel and the mean interior depth of N1(p) behind it, (N,) each, NaN where undefined."""
+    by, bx = layers.by, layers.bx
+    half1 = n1 // 2
+    tool_cnt = _box_sums(layers.tool_cnt_int, by, bx, half1)
+    tool_sum = _box_sums(layers.tool_sum_int, by, bx, half1)
+    has_tool = tool_cnt >= tau_tool
+    has_d = layers.band_valid & has_tool
+    tool_mean = np.full(by.size, np.nan)
+    tool_mean[has_tool] = tool_sum[has_tool] / tool_cnt[has_tool]
+    band_d = np.full(by.size, np.nan)
+    band_d[has_d] = layers.depth_c[by[has_d], bx[has_d]] - tool_mean[has_d]
+    return band_d, tool_mean
+
+
+class _Scores:
+    """Box sums of |d| and of the count of defined d around every band pixel, for one N2; internal."""
+
+    def __init__(self, layers: _Layers, band_d: np.ndarray, n2: int) -> None:
+        by, bx = layers.by, layers.bx
+        has_d = np.isfinite(band_d)
+        abs_d_c = np.zeros(layers.crop_shape, np.float64)
+        abs_d_c[by[has_d], bx[has_d]] = np.abs(band_d[has_d])
+        has_d_c = np.zeros(layers.crop_shape, np.uint8)
+        has_d_c[by[has_d], bx[has_d]] = 1
+        self.half2 = n2 // 2
+        self.count = _box_sums(cv2.integral(has_d_c, sdepth=cv2.CV_32S), by, bx, self.half2)
+        self.total = _box_sums(cv2.integral(abs_d_c, sdepth=cv2.CV_64F), by, bx, self.half2)
+
+    def score(self, tau_patch: int) -> np.ndarray:
+        """s(p) at every band pixel, (N,), NaN where fewer than ``tau_patch`` distances are defined."""
+        ok = self.count >= tau_patch
+        band_s = np.full(self.count.shape, np.nan)
+        band_s[ok] = self.total[ok] / self.count[ok]
+        return band_s
+
+
+def _patch_window(layers: _Layers, band_d: np.ndarray, band_s: np.ndarray, half2: int) -> tuple[int, float]:
+    """Index of p* (first minimum of s in row-major order) and the median d in its N2 window."""
+    best = int(np.nanargmin(band_s))
+    by, bx = layers.by, layers.bx
+    cy, cx = int(by[best]), int(bx[best])
+    in_window = (np.isfinite(band_d) & (np.abs(by - cy) <= half2) & (np.abs(bx - cx) <= half2))
+    return best, float(np.median(band_d[in_window]))
+
+
 def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams = PatchParams()) -> PatchResult:
     """Find the minimum-distance patch of one frame.
 
@@ -189,112 +310,81 @@ def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     PatchResult
         With ``reason`` set (and NaN distance) when no patch could be found.
     """
-    _check_inputs(depth_m, tool_mask)
-    shape = depth_m.shape
-    height, width = shape
-    tool = tool_mask if tool_mask.dtype == np.bool_ else tool_mask != 0
-
-    rows = np.flatnonzero(tool.any(axis=1))
-    if rows.size == 0:
-        return _empty_result(shape, REASON_EMPTY_MASK)
-    cols = np.flatnonzero(tool.any(axis=0))
-
-    # Work on the tool's bounding box padded by the band's reach: every interior, ring and band
-    # pixel lies inside it, so windows clipped to it lose nothing that could contribute.
-    pad = int(np.ceil(params.outer_reach_px)) + 1
-    y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, height)
-    x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, width)
-    tool_c = tool[y0:y1, x0:x1]
-    depth_c = depth_m[y0:y1, x0:x1].astype(np.float64)
-    with np.errstate(invalid="ignore"):
-        valid_c = np.isfinite(depth_c) & (depth_c > 0)
-
-    tool_u8 = np.ascontiguousarray(tool_c).view(np.uint8)
-    layer_c = np.zeros(tool_c.shape, np.uint8)
-    if tool_c.all():
-        # No background anywhere near the tool: nothing to erode against and no band.
-        layer_c[:] = LAYER_INTERIOR
-        layer_ids = np.zeros(shape, np.uint8)
-        layer_ids[y0:y1, x0:x1] = layer_c
-        return _empty_result(shape, REASON_NO_BAND, layer_ids)
-
-    dist_in = cv2.distanceTransform(tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # tool px -> background
-    dist_out = cv2.distanceTransform(1 - tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # background px -> tool
-    shaft_width = float(2.0 * dist_in.max() - 1.0)
-    band_w = band_width_px(shaft_width, params)
-
-    interior_c = dist_in > params.erosion_px
-    band_c = (dist_out > params.ring_px) & (dist_out <= params.ring_px + band_w)
-    layer_c[tool_c] = LAYER_TOOL_EDGE
-    layer_c[interior_c] = LAYER_INTERIOR
-    layer_c[~tool_c & (dist_out <= params.ring_px)] = LAYER_RING
-    layer_c[band_c] = LAYER_BAND
-    layer_ids = np.zeros(shape, np.uint8)
-    layer_ids[y0:y1, x0:x1] = layer_c
-
-    by, bx = np.nonzero(band_c)
+    layers = _build_layers(depth_m, tool_mask, params)
+    if isinstance(layers, PatchResult):
+        return layers
+    height, width = layers.shape
+    y0, x0 = layers.origin_yx
+    by, bx = layers.by, layers.bx
     n_band = int(by.size)
-    if n_band == 0:
-        return _empty_result(shape, REASON_NO_BAND, layer_ids, shaft_width, band_w)
     band_yx = np.stack([by + y0, bx + x0], axis=1).astype(np.int64)
-    band_valid = valid_c[by, bx]
-    invalid_fraction = float(1.0 - band_valid.mean())
-
-    # d(p): surface depth minus mean valid interior depth in N1(p).
-    tool_w = interior_c & valid_c
-    tool_sum_int = cv2.integral(np.where(tool_w, depth_c, 0.0), sdepth=cv2.CV_64F)
-    tool_cnt_int = cv2.integral(tool_w.astype(np.uint8), sdepth=cv2.CV_32S)
-    half1 = params.n1 // 2
-    tool_cnt = _box_sums(tool_cnt_int, by, bx, half1)
-    tool_sum = _box_sums(tool_sum_int, by, bx, half1)
-    has_tool = tool_cnt >= params.tau_tool
-    has_d = band_valid & has_tool
-    tool_mean = np.full(n_band, np.nan)
-    tool_mean[has_tool] = tool_sum[has_tool] / tool_cnt[has_tool]
-    band_d = np.full(n_band, np.nan)
-    band_d[has_d] = depth_c[by[has_d], bx[has_d]] - tool_mean[has_d]
-    n_valid = int(has_d.sum())
+    band_d, tool_mean = _band_distances(layers, params.n1, params.tau_tool)
+    n_valid = int(np.isfinite(band_d).sum())
 
     def _result(reason, center=None, window=None, tool_depth=np.nan, score=np.nan, distance=np.nan,
                 band_s=None, n_cand=0):
         return PatchResult(
-            layer_ids=layer_ids, band_yx=band_yx, band_distance_m=band_d,
+            layer_ids=layers.layer_ids, band_yx=band_yx, band_distance_m=band_d,
             band_score_m=np.full(n_band, np.nan) if band_s is None else band_s,
             center_xy=center, window_xyxy=window, tool_depth_m=float(tool_depth), score_m=float(score),
             distance_m=float(distance), signal=float(distance_signal(distance, params.eps_m)),
-            shaft_width_px=shaft_width, band_width_px=band_w, n_band=n_band, n_valid_distance=n_valid,
-            n_candidates=n_cand, invalid_depth_fraction=invalid_fraction, reason=reason,
+            shaft_width_px=layers.shaft_width_px, band_width_px=layers.band_width_px, n_band=n_band,
+            n_valid_distance=n_valid, n_candidates=n_cand,
+            invalid_depth_fraction=float(1.0 - layers.band_valid.mean()), reason=reason,
         )
 
     if n_valid == 0:
         return _result(REASON_NO_TOOL_DEPTH)
-
-    # s(p): mean |d| over the band pixels of N2(p) whose d is defined.
-    abs_d_c = np.zeros(tool_c.shape, np.float64)
-    abs_d_c[by[has_d], bx[has_d]] = np.abs(band_d[has_d])
-    has_d_c = np.zeros(tool_c.shape, np.uint8)
-    has_d_c[by[has_d], bx[has_d]] = 1
-    half2 = params.n2 // 2
-    d_cnt = _box_sums(cv2.integral(has_d_c, sdepth=cv2.CV_32S), by, bx, half2)
-    d_sum = _box_sums(cv2.integral(abs_d_c, sdepth=cv2.CV_64F), by, bx, half2)
-    is_candidate = d_cnt >= params.tau_patch
-    n_cand = int(is_candidate.sum())
-    band_s = np.full(n_band, np.nan)
-    band_s[is_candidate] = d_sum[is_candidate] / d_cnt[is_candidate]
+    scores = _Scores(layers, band_d, params.n2)
+    band_s = scores.score(params.tau_patch)
+    n_cand = int(np.isfinite(band_s).sum())
     if n_cand == 0:
         return _result(REASON_NO_CANDIDATE, band_s=band_s)
-
-    best = int(np.nanargmin(band_s))
-    cy, cx = int(by[best]), int(bx[best])
-    x0, y0 = int(x0), int(y0)
-    wy0, wy1 = max(cy - half2, 0), min(cy + half2 + 1, tool_c.shape[0])
-    wx0, wx1 = max(cx - half2, 0), min(cx + half2 + 1, tool_c.shape[1])
-    in_window = has_d & (by >= wy0) & (by < wy1) & (bx >= wx0) & (bx < wx1)
-    distance = float(np.median(band_d[in_window]))
+    best, distance = _patch_window(layers, band_d, band_s, scores.half2)
+    cx, cy = int(bx[best]) + x0, int(by[best]) + y0
+    half2 = scores.half2
     return _result(
         None,
-        center=(cx + x0, cy + y0),
-        window=(max(cx + x0 - half2, 0), max(cy + y0 - half2, 0),
-                min(cx + x0 + half2 + 1, width), min(cy + y0 + half2 + 1, height)),
+        center=(cx, cy),
+        window=(max(cx - half2, 0), max(cy - half2, 0), min(cx + half2 + 1, width), min(cy + half2 + 1, height)),
         tool_depth=tool_mean[best], score=band_s[best], distance=distance, band_s=band_s, n_cand=n_cand,
     )
+
+
+def patch_distance_grid(
+    depth_m: np.ndarray,
+    tool_mask: np.ndarray,
+    grid: Sequence[PatchParams],
+) -> np.ndarray:
+    """The frame's distance (m, NaN = no patch) for every parameter set of ``grid``, shape (len(grid),).
+
+    Equal to ``[compute_patch(depth_m, tool_mask, p).distance_m for p in grid]`` but computes the
+    layers once per distinct (erosion, ring, band) setting, ``d`` once per (N1, tau_tool) and the
+    N2 box sums once per (N1, tau_tool, N2): the grid search's cost grows with the number of
+    window sizes, not with the number of grid points.
+    """
+    out = np.full(len(grid), np.nan)
+    layer_cache: dict[tuple, _Layers | PatchResult] = {}
+    d_cache: dict[tuple, np.ndarray] = {}
+    score_cache: dict[tuple, _Scores] = {}
+    for i, p in enumerate(grid):
+        layer_key = (p.erosion_px, p.ring_px, p.band_scale, p.band_min_px, p.band_max_px)
+        if layer_key not in layer_cache:
+            layer_cache[layer_key] = _build_layers(depth_m, tool_mask, p)
+        layers = layer_cache[layer_key]
+        if isinstance(layers, PatchResult):
+            continue
+        d_key = (*layer_key, p.n1, p.tau_tool)
+        if d_key not in d_cache:
+            d_cache[d_key] = _band_distances(layers, p.n1, p.tau_tool)[0]
+        band_d = d_cache[d_key]
+        if not np.isfinite(band_d).any():
+            continue
+        s_key = (*d_key, p.n2)
+        if s_key not in score_cache:
+            score_cache[s_key] = _Scores(layers, band_d, p.n2)
+        scores = score_cache[s_key]
+        band_s = scores.score(p.tau_patch)
+        if np.isfinite(band_s).any():
+            out[i] = _patch_window(layers, band_d, band_s, scores.half2)[1]
+    return out

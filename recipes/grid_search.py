@@ -1,0 +1,136 @@
+"""Choose N1, N2, tau_tool and tau_patch jointly on the training sessions only (paper, Sec. 2.1).
+
+Every grid point is scored by the leave-one-session-out protocol of the HMM: the pooled
+out-of-fold F1 at the threshold that protocol selects, with the pooled out-of-fold AUPRC as the
+tie-breaker. Each frame is decoded once for the whole grid and its patch layers built once; the
+tool-depth term is computed once per (N1, tau_tool) and the N2 sums once per N2, so the cost
+grows with the number of window sizes, not with the number of grid points. Distances per grid
+point are cached outside the sessions, so a rerun with a wider grid only pays for what is new.
+
+    python recipes/grid_search.py demo/sessions/cup_train_* -o demo/best_params.json
+    contact-viz fit demo/sessions/cup_train_* --params demo/best_params.json -o demo/model.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from itertools import product
+from pathlib import Path
+
+import numpy as np
+from rich.progress import Progress
+from sklearn.metrics import average_precision_score, f1_score
+
+from contact_viz import __version__
+from contact_viz.atomic import atomic_write
+from contact_viz.cache import cache_path
+from contact_viz.extract import BadFrameWarning
+from contact_viz.hmm import LosoEnsemble
+from contact_viz.params import PatchParams, to_dict
+from contact_viz.patch import distance_signal, patch_distance_grid
+from contact_viz.session import BadFrame, open_session
+
+
+def ints(text: str) -> list[int]:
+    return [int(v) for v in text.split(",")]
+
+
+def build_grid(n1s, n2s, tau_tools, tau_patches, base: PatchParams) -> tuple[list[PatchParams], list[str]]:
+    """Every valid combination, and a note for each one PatchParams refuses."""
+    grid, skipped = [], []
+    for n1, n2, tau_tool, tau_patch in product(n1s, n2s, tau_tools, tau_patches):
+        try:
+            grid.append(PatchParams(**{**to_dict(base), "n1": n1, "n2": n2, "tau_tool": tau_tool,
+                                       "tau_patch": tau_patch}))
+        except ValueError as exc:
+            skipped.append(str(exc))
+    return grid, skipped
+
+
+def session_distances(session_dir: Path, grid: list[PatchParams], cache_dir, progress: Progress):
+    """(T, G) distances in m for every frame and grid point, and the session's labels (T,)."""
+    import warnings
+
+    session = open_session(session_dir)
+    key = {"grid": [to_dict(p) for p in grid]}
+    path = cache_path(session.root, "grid", key, ".npy", cache_dir)
+    if path.exists():
+        return session.name, np.load(path), np.asarray(session.labels)
+    task = progress.add_task(f"grid {session.name}", total=len(session))
+    out = np.full((len(session), len(grid)), np.nan)
+    for item in session.iter_frames(layers=("mask", "depth")):
+        if isinstance(item, BadFrame):
+            warnings.warn(f"frame {item.stem} skipped: {item.reason}", BadFrameWarning, stacklevel=1)
+        else:
+            out[item.index] = patch_distance_grid(item.depth_m, item.tool_mask, grid)
+        progress.advance(task)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "wb") as handle:
+        np.save(handle, out)
+    return session.name, out, np.asarray(session.labels)
+
+
+def loso_scores(signals: list[np.ndarray], labels: list[np.ndarray], names: list[str]) -> tuple[float, float]:
+    """Pooled out-of-fold F1 (at the protocol's threshold) and AUPRC of the LOSO HMM ensemble."""
+    ensemble = LosoEnsemble().fit(signals, labels, session_names=names)
+    pooled_p = np.concatenate(ensemble.oof_posteriors_)
+    pooled_y = np.concatenate(labels)
+    keep = pooled_y >= 0
+    y, p = pooled_y[keep], pooled_p[keep]
+    return float(f1_score(y, p >= ensemble.threshold_)), float(average_precision_score(y, p))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("sessions", type=Path, nargs="+", help="training session directories (K >= 2)")
+    parser.add_argument("-o", "--output", type=Path, default=Path("best_params.json"))
+    parser.add_argument("--n1", type=ints, default=[29, 31, 37], help="N1 window sides, px")
+    parser.add_argument("--n2", type=ints, default=[11, 17, 23], help="N2 window sides, px")
+    parser.add_argument("--tau-tool", type=ints, default=[15, 30, 60], help="tau_tool values, pixels")
+    parser.add_argument("--tau-patch", type=ints, default=[4, 8, 16], help="tau_patch values, distances")
+    parser.add_argument("--cache-dir", type=Path, default=None)
+    args = parser.parse_args()
+    if len(args.sessions) < 2:
+        parser.error("leave-one-session-out needs at least 2 training sessions")
+
+    base = PatchParams()
+    grid, skipped = build_grid(args.n1, args.n2, args.tau_tool, args.tau_patch, base)
+    for note in skipped:
+        print(f"skipped: {note}")
+    with Progress() as progress:
+        per_session = [session_distances(s, grid, args.cache_dir, progress) for s in args.sessions]
+    names = [name for name, _, _ in per_session]
+    labels = [y.astype(np.int8) for _, _, y in per_session]
+
+    results = []
+    for g, params in enumerate(grid):
+        signals = [distance_signal(d[:, g], params.eps_m) for _, d, _ in per_session]
+        try:
+            f1, auprc = loso_scores(signals, labels, names)
+        except ValueError as exc:
+            print(f"n1={params.n1} n2={params.n2} tau_tool={params.tau_tool} tau_patch={params.tau_patch}: {exc}")
+            continue
+        found = float(np.mean([np.isfinite(s).mean() for s in signals]))
+        results.append((f1, auprc, found, params))
+    if not results:
+        raise SystemExit("no grid point could be scored")
+    results.sort(key=lambda r: (-r[0], -r[1]))
+
+    print(f"\n{'N1':>4} {'N2':>4} {'tau_tool':>8} {'tau_patch':>9} {'OOF F1':>8} {'OOF AUPRC':>10} {'found':>6}")
+    for f1, auprc, found, p in results:
+        print(f"{p.n1:>4} {p.n2:>4} {p.tau_tool:>8} {p.tau_patch:>9} {f1:>8.4f} {auprc:>10.4f} {found:>6.1%}")
+    f1, auprc, _, best = results[0]
+    with atomic_write(args.output) as handle:
+        json.dump({"patch_params": to_dict(best), "grid_search": {
+            "contact_viz_version": __version__, "sessions": [str(s.resolve()) for s in args.sessions],
+            "score": "pooled out-of-fold F1 of the LOSO HMM ensemble, AUPRC as tie-breaker",
+            "best_oof_f1": f1, "best_oof_auprc": auprc, "grid_points": len(grid),
+            "n1": args.n1, "n2": args.n2, "tau_tool": args.tau_tool, "tau_patch": args.tau_patch}}, handle, indent=2)
+        handle.write("\n")
+    print(f"\nbest: n1={best.n1} n2={best.n2} tau_tool={best.tau_tool} tau_patch={best.tau_patch} "
+          f"(OOF F1 {f1:.4f}, AUPRC {auprc:.4f}) -> {args.output}")
+
+
+if __name__ == "__main__":
+    main()
