@@ -160,3 +160,36 @@ def test_model_file_round_trip(tmp_path):
     assert back.patch_params == PatchParams(n2=15) and back.label_params == LabelParams(3.0)
     assert back.threshold == model.threshold
     np.testing.assert_array_equal(back.predict_proba(signals[0]), model.predict_proba(signals[0]))
+
+
+def test_grid_search_recipe_best_params_feed_fit(study, tmp_path):
+    """The recipe's best grid point, refitted through `fit --params`, reproduces its OOF score.
+
+    The recipe computes distances with the shared-stage grid code; `fit` extracts them with
+    compute_patch one parameter set at a time: the pooled out-of-fold F1 must agree.
+    """
+    best = tmp_path / "best.json"
+    done = subprocess.run(
+        [sys.executable, str(Path(__file__).parents[1] / "recipes" / "grid_search.py"), *map(str, study["train"]),
+         "-o", str(best), "--n1", "29,31", "--n2", "11,17", "--tau-tool", "30", "--tau-patch", "4,8",
+         "--cache-dir", str(tmp_path / "cache")], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "OOF F1" in done.stdout and "best:" in done.stdout
+    chosen = json.loads(best.read_text())
+    assert chosen["grid_search"]["grid_points"] == 8
+    model_path = tmp_path / "model.json"
+    run("fit", *map(str, study["train"]), "--params", str(best), "-o", str(model_path),
+        "--cache-dir", str(tmp_path / "cache"))
+    model = load_model(model_path)
+    assert {k: getattr(model.patch_params, k) for k in ("n1", "n2", "tau_tool", "tau_patch")} == \
+        {k: chosen["patch_params"][k] for k in ("n1", "n2", "tau_tool", "tau_patch")}
+    ens = model.ensemble
+    labels = []
+    for session in study["train"]:
+        rows = read_csv(next((tmp_path / "cache" / "features").glob(f"{Path(session).name}-*.csv")))
+        labels.append(np.array([int(r["label"]) if r["label"] else -1 for r in rows]))
+    y = np.concatenate(labels)
+    p = np.concatenate(ens.oof_posteriors_)
+    keep = y >= 0
+    assert f1_score(y[keep], p[keep] >= ens.threshold_) == pytest.approx(chosen["grid_search"]["best_oof_f1"], abs=1e-12)
+    assert average_precision_score(y[keep], p[keep]) == pytest.approx(chosen["grid_search"]["best_oof_auprc"], abs=1e-12)

@@ -16,10 +16,12 @@ from PIL import Image
 
 from contact_viz.errors import SessionError
 from contact_viz.params import LabelParams
+from contact_viz.stereo import SGBMParams
 from contact_viz.session import (
     BadFrame,
     Frame,
     SessionWarning,
+    missing_inputs,
     natural_key,
     nearest_indices,
     open_session,
@@ -321,7 +323,12 @@ ERROR_CASES = {
     "json_fps_zero": (lambda r: (r / "session.json").write_text('{"fps": 0}'), ["session.json", "fps", "positive"]),
     "json_fps_text": (lambda r: (r / "session.json").write_text('{"fps": "30"}'), ["session.json", "fps", "positive"]),
     "no_masks": (lambda r: _rmtree(r / "masks"), ["masks", "masks/<stem>.png", "SAM2"]),
-    "no_depth": (lambda r: _rmtree(r / "depth"), ["depth", "FoundationStereo", "depth_meter.npy", "depth/<stem>.npy", "uint16"]),
+    # Without depth/ a session with right/ falls back to SGBM (tested below); without right/ too, nothing is left.
+    "no_depth": (
+        lambda r: (_rmtree(r / "depth"), _rmtree(r / "right")),
+        ["depth", "FoundationStereo", "depth_meter.npy", "depth/<stem>.npy", "uint16", "disparity/<stem>.npy",
+         "right/", "SGBM", "recommended"],
+    ),
     "force_missing_fz": (
         lambda r: write_csv(r / "force.csv", "frame,fx,fy,force_z\n1,0,0,0"),
         ["force.csv", "missing fz", "found columns", "force_z"],
@@ -516,3 +523,216 @@ def test_jpeg_left_is_rgb(tmp_path):
     frame = s.load_frame(1, layers=("left",))
     assert isinstance(frame, Frame) and frame.left_rgb.shape == (H, W, 3)
     np.testing.assert_allclose(frame.left_rgb.reshape(-1, 3).mean(axis=0), colour, atol=3)
+
+
+# ------------------------------------------------------------------------------------------
+# Depth sources: depth/, disparity/, SGBM; calibration that needs rectification
+# ------------------------------------------------------------------------------------------
+
+SH, SW = 40, 96  # size of the stereo sessions, px
+SFX = 200.0  # their focal length, px
+SBASE_M = 0.005  # their baseline, m
+
+
+def make_stereo_session(root: Path, disparities=(6, 7, 8), *, masks: bool = True, seed: int = 0) -> None:
+    """left/ + right/ of a textured fronto-parallel plane per frame (constant disparity), K.txt, masks/."""
+    rng = np.random.default_rng(seed)
+    for sub in ("left", "right") + (("masks",) if masks else ()):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    (root / "K.txt").write_text(f"{SFX} 0 {SW / 2} 0 {SFX} {SH / 2} 0 0 1\n{SBASE_M}\n")
+    for i, d in enumerate(disparities):
+        texture = rng.integers(0, 256, (SH, SW + d, 3), dtype=np.uint8)
+        Image.fromarray(texture[:, :SW]).save(root / "left" / f"{i}.png")  # left x shows texture x
+        Image.fromarray(texture[:, d:d + SW]).save(root / "right" / f"{i}.png")  # right x shows texture x + d
+        if masks:
+            Image.fromarray(np.zeros((SH, SW), np.uint8)).save(root / "masks" / f"{i}.png")
+
+
+def test_sgbm_fallback_is_cached_outside_the_session(tmp_path, caplog):
+    root = tmp_path / "s"
+    make_stereo_session(root)
+    cache = tmp_path / "cache"
+    before = listing(root)
+    with caplog.at_level("INFO", logger="contact_viz.session"):
+        s = open_session(root, cache_dir=cache)
+    assert s.depth_source == "sgbm" and "SGBM" in s.depth_note and "FoundationStereo" in s.depth_note
+    assert s.depth_note in caplog.text
+    assert s.depth_config["source"] == "sgbm" and s.depth_config["sgbm"]["num_disparities"] == 16
+    assert s.depth_cache_dir is not None and cache in s.depth_cache_dir.parents
+    frames = list(s.iter_frames(layers=("mask", "depth", "left", "right"), workers=2, prefetch=3))
+    assert all(isinstance(f, Frame) for f in frames)
+    for frame, d in zip(frames, (6, 7, 8)):
+        valid = np.isfinite(frame.depth_m)
+        assert valid.mean() > 0.8  # the padding lets even the left border match
+        np.testing.assert_allclose(np.median(frame.depth_m[valid]), SFX * SBASE_M / d, rtol=1e-6)
+        assert np.mean(np.abs(frame.depth_m[valid] - SFX * SBASE_M / d) < 1e-4) > 0.95
+    assert len(list(s.depth_cache_dir.glob("*.png"))) == 3
+    assert listing(root) == before  # nothing written into the session
+    # A second session object reads the cache; the depth is identical.
+    again = open_session(root, cache_dir=cache)
+    depth, origin = again.load_depth(0, with_origin=True)
+    assert origin == "cached"
+    np.testing.assert_array_equal(depth, frames[0].depth_m)
+    # Other SGBM parameters are another cache entry.
+    other = open_session(root, cache_dir=cache, sgbm_params=SGBMParams(block_size=5))
+    assert other.depth_cache_dir != s.depth_cache_dir
+    assert other.load_depth(0, with_origin=True)[1] == "computed"
+
+
+def test_sgbm_frame_without_right_image_is_a_bad_frame(tmp_path):
+    root = tmp_path / "s"
+    make_stereo_session(root)
+    (root / "right" / "1.png").unlink()
+    s = open_session(root, cache_dir=tmp_path / "cache")
+    out = list(s.iter_frames())
+    assert [type(f).__name__ for f in out] == ["Frame", "BadFrame", "Frame"]
+    assert "right" in out[1].reason and "1.png" in out[1].reason and "SGBM" in out[1].reason
+
+
+def test_disparity_source_and_preference_order(tmp_path):
+    root = tmp_path / "s"
+    make_stereo_session(root)
+    (root / "disparity").mkdir()
+    for i in range(3):
+        disparity = np.full((SH, SW), 4.0 + i, np.float32)
+        disparity[0, :4] = [0.0, -1.0, np.nan, np.inf]
+        np.save(root / "disparity" / f"{i}.npy", disparity)
+    s = open_session(root, cache_dir=tmp_path / "cache")
+    assert s.depth_source == "disparity" and s.depth_cache_dir is None and "disparity/" in s.depth_note
+    depth = s.load_frame(2, layers=("depth",)).depth_m
+    # depth = fx * B / d = 200 * 0.005 / 6 m; zero, negative, NaN and inf disparities are invalid.
+    assert depth[5, 5] == pytest.approx(1.0 / 6.0, rel=1e-6)
+    assert np.isnan(depth[0, :4]).all() and np.isfinite(depth[1:]).all()
+    # depth/ wins over disparity/.
+    (root / "depth").mkdir()
+    for i in range(3):
+        np.save(root / "depth" / f"{i}.npy", np.full((SH, SW), 0.3, np.float32))
+    s = open_session(root)
+    assert s.depth_source == "depth"
+    assert s.load_frame(0, layers=("depth",)).depth_m[0, 0] == np.float32(0.3)
+
+
+def test_depth_method_none_turns_sgbm_off(tmp_path):
+    root = tmp_path / "s"
+    make_stereo_session(root)
+    with pytest.raises(SessionError, match=r"depth.*depth_method=None.*FoundationStereo"):
+        open_session(root, depth_method=None)
+    with pytest.raises(ValueError, match="depth_method"):
+        open_session(root, depth_method="raft")
+
+
+def test_missing_masks_says_what_to_fill(tmp_path):
+    root = tmp_path / "s"
+    make_stereo_session(root, masks=False)
+    assert missing_inputs(root) == [
+        line for line in missing_inputs(root) if line.startswith(("masks/", "depth/"))
+    ] and len(missing_inputs(root)) == 2
+    with pytest.raises(SessionError) as info:
+        open_session(root)
+    message = str(info.value)
+    for part in ("masks", "masks/<stem>.png", "SAM2", "depth/<stem>.npy", "disparity/<stem>.npy", "SGBM"):
+        assert part in message, part
+    s = open_session(root, require_masks=False, cache_dir=tmp_path / "cache")
+    bad = s.load_frame(0, layers=("mask",))
+    assert isinstance(bad, BadFrame) and "masks" in bad.reason
+    assert isinstance(s.load_depth(0), np.ndarray)
+    (root / "K.txt").unlink()
+    assert any("K.txt" in line for line in missing_inputs(root))
+
+
+def write_raw_rig(root: Path) -> None:
+    """stereo.yaml of a raw (distorted, slightly rotated) rig of SW x SH images, in OpenCV FileStorage."""
+    fs = cv2.FileStorage(str(root / "stereo.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("K1", np.array([[80.0, 0, 47], [0, 81, 19], [0, 0, 1]]))
+    fs.write("D1", np.array([-0.2, 0.05, 0.001, 0.0, 0.0]))
+    fs.write("K2", np.array([[79.0, 0, 49], [0, 80, 21], [0, 0, 1]]))
+    fs.write("D2", np.array([-0.15, 0.03, 0.0, 0.001, 0.0]))
+    fs.write("R", cv2.Rodrigues(np.array([0.02, -0.03, 0.01]))[0])
+    fs.write("T", np.array([-0.005, 0.0002, 0.0001]))
+    fs.write("image_width", SW)
+    fs.write("image_height", SH)
+    fs.release()
+
+
+def test_raw_images_are_rectified_on_load(tmp_path):
+    root = tmp_path / "s"
+    make_stereo_session(root)
+    (root / "K.txt").unlink()
+    write_raw_rig(root)
+    ids = np.zeros((SH, SW), np.uint8)
+    ids[10:30, 20:70] = 1
+    write_palette_png(root / "masks" / "0.png", ids)
+    (root / "depth").mkdir()
+    raw_depth = np.linspace(0.05, 0.15, SH * SW, dtype=np.float32).reshape(SH, SW)
+    np.save(root / "depth" / "0.npy", raw_depth)
+    s = open_session(root)
+    assert s.rectification is not None and "rectified on load" in s.depth_note
+    assert s.calibration.baseline_m == pytest.approx(math.sqrt(0.005**2 + 0.0002**2 + 0.0001**2))
+    frame = s.load_frame(0, layers=("mask", "depth", "left", "right"))
+    assert isinstance(frame, Frame)
+    raw_left = np.asarray(Image.open(root / "left" / "0.png"))
+    raw_right = np.asarray(Image.open(root / "right" / "0.png"))
+    rect = s.rectification
+    np.testing.assert_array_equal(frame.left_rgb, rect.apply("left", raw_left))
+    np.testing.assert_array_equal(frame.right_rgb, rect.apply("right", raw_right))
+    assert not np.array_equal(frame.left_rgb, raw_left)  # the maps are not the identity
+    # Masks and depth are resampled with nearest neighbour: no new values appear.
+    assert frame.tool_mask.dtype == bool
+    expected_mask = cv2.remap(ids, rect.left_x, rect.left_y, cv2.INTER_NEAREST) == 1
+    np.testing.assert_array_equal(frame.tool_mask, expected_mask)
+    assert 0 < frame.tool_mask.sum() < SH * SW
+    values = frame.depth_m[np.isfinite(frame.depth_m)]
+    assert np.isin(values, raw_depth).all()
+    # disparity/ cannot be used with raw images.
+    for path in (root / "depth").iterdir():
+        path.unlink()
+    (root / "depth").rmdir()
+    (root / "disparity").mkdir()
+    np.save(root / "disparity" / "0.npy", np.ones((SH, SW), np.float32))
+    with pytest.raises(SessionError, match=r"disparity.*rectified.*raw"):
+        open_session(root)
+
+
+def test_calibration_errors_reach_open_session(tmp_path):
+    root = tmp_path / "s"
+    make_stereo_session(root)
+    (root / "K.txt").write_text(f"{SFX} 0 {SW * 4} 0 {SFX} {SH / 2} 0 0 1\n{SBASE_M}\n")
+    with pytest.raises(SessionError, match=r"K.txt.*image size mismatch"):
+        open_session(root)
+    (root / "K.txt").unlink()
+    with pytest.raises(SessionError, match=r"K.txt.*left.yaml.*stereo.yaml"):
+        open_session(root)
+
+
+def test_middlebury_session_with_ros_calibration(tmp_path):
+    """SGBM depth of the Middlebury Motorcycle pair through a session with a ROS calibration whose
+    rectified principal points differ (doffs): depth = f B / (d + doffs) against the true disparity."""
+    skdata = pytest.importorskip("skimage.data")
+    left, right, truth = skdata.stereo_motorcycle()
+    root = tmp_path / "mb"
+    for sub in ("left", "right"):
+        (root / sub).mkdir(parents=True)
+    Image.fromarray(left).save(root / "left" / "0.png")
+    Image.fromarray(right).save(root / "right" / "0.png")
+    fx, cx, cy, doffs, baseline = 994.978, 311.193, 254.877, 31.086, 0.193001
+    height, width = truth.shape
+
+    def ros(p_row0):
+        k = f"[{fx}, 0, {cx}, 0, {fx}, {cy}, 0, 0, 1]"
+        p = "[" + ", ".join(str(v) for v in p_row0 + [0, fx, cy, 0, 0, 0, 1, 0]) + "]"
+        return (f"image_width: {width}\nimage_height: {height}\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: {k}\n"
+                "distortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0, 0, 0, 0, 0]\n"
+                "rectification_matrix:\n  rows: 3\n  cols: 3\n  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n"
+                f"projection_matrix:\n  rows: 3\n  cols: 4\n  data: {p}\n")
+
+    (root / "left.yaml").write_text(ros([fx, 0, cx, 0]))
+    (root / "right.yaml").write_text(ros([fx, 0, cx + doffs, -fx * baseline]))
+    s = open_session(root, require_masks=False, cache_dir=tmp_path / "cache")
+    assert s.rectification is None and s.calibration.disparity_offset_px == pytest.approx(doffs)
+    depth = s.load_depth(0)
+    both = np.isfinite(depth) & np.isfinite(truth)  # truth is inf where unknown
+    true_depth = fx * baseline / (truth + doffs)
+    relative = np.abs(depth[both] / true_depth[both] - 1)
+    # Measured: 95.7 % within 2 px of disparity; disparities + doffs are 38-91 px, so 2 px <= 5.3 %.
+    assert np.mean(relative <= 0.053) >= 0.94
+    assert np.median(relative) < 0.01

@@ -274,8 +274,10 @@ def _open_storage(path: Path, what: str) -> cv2.FileStorage:
         text = "%YAML:1.0\n" + text  # OpenCV's YAML reader needs the directive; ROS files lack it
     try:
         storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-    except cv2.error as exc:
-        raise SessionError(path, f"expected a {what}, could not parse it ({str(exc).strip()})") from exc
+    except (cv2.error, SystemError) as exc:  # the bindings report some parse errors as SystemError
+        cause = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
+        detail = str(cause).strip().splitlines()[-1] if str(cause).strip() else type(cause).__name__
+        raise SessionError(path, f"expected a {what}, could not parse it ({detail})") from exc
     if not storage.isOpened():
         raise SessionError(path, f"expected a {what}, could not parse it")
     return storage

@@ -48,7 +48,14 @@ import rerun.blueprint as rrb
 from contact_viz.diagnostics import DIAGNOSTIC_CODES, Diagnostic
 from contact_viz.pointcloud import Cloud, PatchGeometry
 from contact_viz.session import BadFrame, Session
-from contact_viz.style import DIAGNOSTIC_STYLES, LAYER_OVERLAY_OPACITY, LAYER_STYLES, PATCH_STYLES, SERIES_STYLES
+from contact_viz.style import (
+    DEPTH_COLORMAP,
+    DIAGNOSTIC_STYLES,
+    LAYER_OVERLAY_OPACITY,
+    LAYER_STYLES,
+    PATCH_STYLES,
+    SERIES_STYLES,
+)
 
 __all__ = [
     "APPLICATION_ID",
@@ -137,6 +144,14 @@ MM_PER_M = 1000.0  # millimetres per metre
 IMAGE_PLANE_DISTANCE_M = 0.015  # how far from each camera its image is drawn in the 3D view, m
 GAP_ARROW_RADIUS_M = 0.0002  # shaft radius of the gap arrow, m
 BOX_LINE_RADIUS_PX = 1.5  # half line width of the patch box, UI px (negative radii in Rerun = UI units)
+DIAGNOSTIC_LEVEL_STEP = 0.1  # height between two diagnostics' marker rows, above the invalid-depth fraction (0-1)
+
+# Default 3D camera of the blueprint, in the world (= left camera) frame, RDF, m: above and to the right of the
+# stereo camera, looking at a point on the optical axis at a typical endoscopic working distance, so the tool,
+# the tissue under it and the gap arrow are seen from the side rather than along the camera's own ray.
+EYE_POSITION_M = (0.075, -0.06, 0.0)  # eye position, m
+EYE_TARGET_M = (0.0, 0.0, 0.085)  # point the eye looks at, m
+EYE_UP = (0.0, -1.0, 0.0)  # up direction of the eye (-y in RDF)
 
 MODEL_HINT = (
     "No contact model given, so there is no HMM posterior. Fit one on labelled training sessions with "
@@ -158,8 +173,12 @@ def diagnostic_entity(code: str) -> str:
 
 
 def _diagnostic_level(code: str) -> float:
-    """Height of a diagnostic's markers: its position in DIAGNOSTIC_CODES, 1-based (a raster plot)."""
-    return float(list(DIAGNOSTIC_CODES).index(code) + 1)
+    """Height of a diagnostic's markers: 1 + DIAGNOSTIC_LEVEL_STEP x its position in DIAGNOSTIC_CODES.
+
+    A raster of marker rows just above the invalid-depth fraction (0-1) that shares their plot, so
+    neither is squashed by the other's scale.
+    """
+    return 1.0 + DIAGNOSTIC_LEVEL_STEP * list(DIAGNOSTIC_CODES).index(code)
 
 
 @dataclass(frozen=True)
@@ -254,41 +273,60 @@ def log_static(
 
 
 def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rrb.Blueprint:
-    """The layout sent with every recording: images and 3D on the left, stacked time series on the right.
+    """The layout sent with every recording: images over the 3D scene on the left, stacked time series on the right.
 
-    Left column: left image with the layer overlay and the patch box, right image, depth with the
-    same overlay, and the 3D scene (RGB cloud, patch points, gap arrow, camera frustums; the depth
-    image's own back-projection is in the scene but hidden until toggled on). Right
-    column: distance, signal, force, contact (truth / posterior / threshold / prediction) and
-    diagnostics, all on the global ``frame`` axis, then the text log.
+    Left column, top: the left image with the layer overlay and the patch box (large), and beside it
+    the right image over the depth image with the same overlay (each a quarter of the left image's
+    area, so the three images fill their panes with little letterboxing). Below: the 3D scene (RGB
+    cloud, patch points, gap arrow, camera frustums; the depth image's own back-projection is in the
+    scene but hidden until toggled on), seen from the side (EYE_*). Right column: distance, signal,
+    force, contact (truth / posterior / threshold / prediction) and diagnostics, all on the global
+    ``frame`` axis, then the text log. Single-series plots have no legend (the view name says what
+    and in which unit); the others have theirs in the corner their data leaves free.
     """
     linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
-    left = rrb.Spatial2DView(name="left + layers", origin=ENTITY_LEFT_CAMERA)
+    no_legend = rrb.PlotLegend(visible=False)
+    left = rrb.Spatial2DView(name="left image + layers + patch", origin=ENTITY_LEFT_CAMERA)
     depth = rrb.Spatial2DView(name="depth + layers", origin=ENTITY_DEPTH_CAMERA)
     scene = rrb.Spatial3DView(
-        name="3D",
+        name="3D: cloud, patch points, gap",
         origin=ENTITY_WORLD,
         contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}", f"- {ENTITY_LEFT_PATCH}", f"- {ENTITY_DEPTH_LAYERS}",
                   f"- {ENTITY_DEPTH_PATCH}"],
         # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
         overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
         line_grid=rrb.LineGrid3D(visible=False),
+        eye_controls=rrb.EyeControls3D(position=EYE_POSITION_M, look_target=EYE_TARGET_M, eye_up=EYE_UP),
     )
-    images = rrb.Horizontal(left, rrb.Spatial2DView(name="right", origin=ENTITY_RIGHT_CAMERA)) if with_right else left
-    contact_name = "contact: truth, posterior, threshold, prediction" if with_model else "contact: ground truth"
+    if with_right:
+        right = rrb.Spatial2DView(name="right image", origin=ENTITY_RIGHT_CAMERA)
+        images = rrb.Horizontal(left, rrb.Vertical(right, depth), column_shares=[2, 1])
+    else:
+        images = rrb.Horizontal(left, depth, column_shares=[1, 1])
+    contact_name = ("contact (0/1): truth, HMM posterior, threshold, prediction" if with_model
+                    else "contact (0/1): ground truth")
+    n_levels = len(DIAGNOSTIC_CODES)
+    diagnostics_top = 1.0 + DIAGNOSTIC_LEVEL_STEP * n_levels
     series = [
-        rrb.TimeSeriesView(name="distance (mm)", origin=ENTITY_SERIES_DISTANCE, axis_x=linked),
-        rrb.TimeSeriesView(name="signal", origin=ENTITY_SERIES_SIGNAL, axis_x=linked),
-        rrb.TimeSeriesView(name="force (N)", origin=ENTITY_SERIES_FORCE, axis_x=linked),
+        rrb.TimeSeriesView(name="distance (mm)", origin=ENTITY_SERIES_DISTANCE, axis_x=linked,
+                           plot_legend=no_legend),
+        rrb.TimeSeriesView(name="signal -log10 max(|d|, eps), d in m", origin=ENTITY_SERIES_SIGNAL, axis_x=linked,
+                           plot_legend=no_legend),
+        rrb.TimeSeriesView(name="force (N)", origin=ENTITY_SERIES_FORCE, axis_x=linked,
+                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
         rrb.TimeSeriesView(name=contact_name, origin=ENTITY_SERIES_CONTACT, axis_x=linked,
-                           axis_y=rrb.ScalarAxis(range=(-0.05, 1.05))),
-        rrb.TimeSeriesView(name="diagnostics", origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked),
+                           axis_y=rrb.ScalarAxis(range=(-0.05, 1.05)),
+                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
+        rrb.TimeSeriesView(name="diagnostics: invalid depth (fraction), checks fired (markers)",
+                           origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked,
+                           axis_y=rrb.ScalarAxis(range=(-0.05, diagnostics_top)),
+                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
         rrb.TextLogView(name="log", origin=ENTITY_LOG),
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(images, rrb.Horizontal(depth, scene), row_shares=[1, 1]),
-            rrb.Vertical(*series, row_shares=[1, 1, 1, 1, 1, 0.8]),
+            rrb.Vertical(images, scene, row_shares=[0.47, 0.53]),
+            rrb.Vertical(*series, row_shares=[1, 1, 1, 1.3, 1, 0.7]),
             column_shares=[3, 2],
         ),
         rrb.BlueprintPanel(state="collapsed"),
@@ -395,7 +433,7 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
     rec.log(ENTITY_LEFT_LAYERS, rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
     if view.has_right:
         _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb)
-    rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m))
+    rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP))
     rec.log(ENTITY_DEPTH_LAYERS, rr.SegmentationImage(view.depth_layers, opacity=LAYER_OVERLAY_OPACITY))
 
     if view.cloud is not None:

@@ -5,18 +5,26 @@ The session directory format (the contract)::
     SESSION/
       session.json        optional: {"name", "phantom", "task", "fps"} (fps default 30)
       K.txt               line 1 = 9 numbers, row-major 3x3 K (px); line 2 = stereo baseline (m)
-      left/<stem>.png|jpg|jpeg    rectified left frames (the frame list)
-      right/<stem>.png|jpg|jpeg   rectified right frames (optional)
+                          (or ROS left.yaml + right.yaml, or an OpenCV stereo.yaml: see calibration.py)
+      left/<stem>.png|jpg|jpeg    left frames (the frame list); rectified, unless the calibration
+                                  says otherwise (then left/right/masks/depth are rectified on load)
+      right/<stem>.png|jpg|jpeg   right frames (optional; needed for SGBM depth)
       masks/<stem>.png    tool mask: palettized (index = object id) or 8-bit 0/255 (or RGB, nonzero = tool)
       depth/<stem>.npy    float32 metres, or depth/<stem>.png uint16 millimetres; 0, NaN, inf = invalid
+      disparity/<stem>.npy  float32 px (FoundationStereo's raw output), used when depth/ is absent
       force.csv           optional: `frame` (stem) or `timestamp` (s) column, plus fx, fy, fz (N)
       frames.csv          optional: frame,timestamp (s); needed when force.csv is indexed by timestamp
       labels.csv          optional manual labels: frame,contact (0/1); they replace the force labels
 
+Depth comes from one source per session, chosen in this order and logged (``Session.depth_note``):
+``depth/``; else ``disparity/`` (depth = fx * baseline / (disparity + offset)); else OpenCV
+semi-global matching of the left/right pair (``stereo.py``), computed lazily per frame and cached
+outside the session directory.
+
 ``open_session`` validates everything that is session-wide up front and raises one
 :class:`SessionError` naming the file and what was expected. Per-frame problems never raise:
 ``Session.iter_frames`` yields a :class:`BadFrame` for them and carries on. Nothing here ever
-writes to disk.
+writes into the session directory (the SGBM cache lives in the cache folder).
 """
 
 from __future__ import annotations
@@ -24,6 +32,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 import os
 import re
@@ -32,34 +41,42 @@ import zlib
 from collections import deque
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 from PIL import Image
 
+from contact_viz.calibration import Calibration, Rectification, StereoCalibration, read_calibration
 from contact_viz.errors import SessionError
 from contact_viz.params import LabelParams
+from contact_viz.stereo import DEPTH_METHODS, DisparityCache, SGBMParams, disparity_to_depth
 
 __all__ = [
     "LAYERS",
     "BadFrame",
     "Calibration",
+    "DEPTH_SOURCES",
     "Frame",
     "Session",
     "SessionWarning",
+    "missing_inputs",
     "natural_key",
     "open_session",
     "read_depth_m",
+    "read_disparity_px",
     "read_rgb",
     "read_tool_mask",
 ]
+
+log = logging.getLogger(__name__)
 
 LAYERS = frozenset({"mask", "depth", "left", "right"})  # names of the per-frame layers iter_frames can decode
 DEFAULT_FPS = 30.0  # frame rate used when session.json gives none, frames/s
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # accepted left/right image file types, in lookup preference
 MM_PER_M = 1000.0  # millimetres per metre (uint16 depth PNGs hold millimetres)
+DEPTH_SOURCES = ("depth", "disparity", "sgbm")  # where a session's depth can come from, in preference order
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_COLOR_TYPE_OFFSET = 25  # byte offset of the IHDR colour-type field in a PNG file
@@ -76,34 +93,6 @@ class SessionWarning(UserWarning):
 # --------------------------------------------------------------------------------------------
 # Data types
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class Calibration:
-    """Rectified left camera intrinsics and stereo baseline."""
-
-    K: np.ndarray  # (3, 3) float64 camera matrix of the rectified left camera, px
-    baseline_m: float  # stereo baseline, m
-
-    @property
-    def fx(self) -> float:
-        """Focal length along x, px."""
-        return float(self.K[0, 0])
-
-    @property
-    def fy(self) -> float:
-        """Focal length along y, px."""
-        return float(self.K[1, 1])
-
-    @property
-    def cx(self) -> float:
-        """Principal point x, px."""
-        return float(self.K[0, 2])
-
-    @property
-    def cy(self) -> float:
-        """Principal point y, px."""
-        return float(self.K[1, 2])
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,56 +225,6 @@ def force_labels(force_n: np.ndarray, params: LabelParams) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Session-wide files
 # --------------------------------------------------------------------------------------------
-
-
-def _parse_number_line(line: str) -> list[float]:
-    """Numbers on one line, separated by whitespace and/or commas; raises ValueError naming a bad token."""
-    tokens = [t for t in re.split(r"[\s,]+", line.strip()) if t]
-    return [float(t) for t in tokens]
-
-
-def read_calibration(path: Path) -> Calibration:
-    """Parse a FoundationStereo K.txt: line 1 = row-major 3x3 K (px), line 2 = baseline (m)."""
-    if not path.is_file():
-        raise SessionError(
-            path, "missing: expected the rectified left camera K.txt (line 1: 9 numbers of the 3x3 K in px; "
-            "line 2: the stereo baseline in metres)"
-        )
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SessionError(path, f"expected a readable text file, could not read it ({exc})") from exc
-    lines = text.splitlines()
-    while lines and not lines[-1].strip():
-        lines.pop()
-    if len(lines) != 2:
-        raise SessionError(
-            path, f"expected 2 lines (9 numbers of K, then the baseline in metres), found {len(lines)}"
-        )
-    try:
-        k_values = _parse_number_line(lines[0])
-    except ValueError as exc:
-        raise SessionError(
-            path, f"expected 9 numbers on line 1 (row-major 3x3 K in px), found {lines[0].strip()!r}"
-        ) from exc
-    if len(k_values) != 9:
-        raise SessionError(path, f"expected 9 numbers on line 1, found {len(k_values)} (row-major 3x3 K in px)")
-    K = np.asarray(k_values, dtype=np.float64).reshape(3, 3)
-    if not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0) or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
-        raise SessionError(
-            path, f"expected a camera matrix [fx s cx; 0 fy cy; 0 0 1] with fx, fy > 0 on line 1, found {k_values}"
-        )
-    try:
-        b_values = _parse_number_line(lines[1])
-    except ValueError as exc:
-        raise SessionError(
-            path, f"expected one positive number (stereo baseline, m) on line 2, found {lines[1].strip()!r}"
-        ) from exc
-    if len(b_values) != 1 or not (math.isfinite(b_values[0]) and b_values[0] > 0):
-        found = f"{len(b_values)} numbers" if len(b_values) != 1 else f"{b_values[0]!r}"
-        raise SessionError(path, f"expected one positive number (stereo baseline, m) on line 2, found {found}")
-    K.flags.writeable = False
-    return Calibration(K=K, baseline_m=float(b_values[0]))
 
 
 def _read_session_json(path: Path) -> dict:
@@ -480,29 +419,108 @@ def _list_stems(directory: Path, suffixes: Sequence[str]) -> dict[str, Path]:
     return found
 
 
-def _find_masks(root: Path) -> dict[str, Path]:
-    """stem -> tool mask file (masks/<stem>.png)."""
+_MASKS_HINT = (
+    "masks/<stem>.png: the tool masks (e.g. from SAM2), one per left frame "
+    "(palettized PNG with object ids, or 8-bit 0/255)"
+)
+_DEPTH_HINT = (
+    "depth/<stem>.npy (float32 metres, e.g. FoundationStereo's depth_meter.npy) or depth/<stem>.png "
+    "(uint16 millimetres), or disparity/<stem>.npy (float32 px, FoundationStereo's raw disparity); "
+    "FoundationStereo is recommended"
+)
+
+
+def missing_inputs(root: str | Path) -> list[str]:
+    """What session ``root`` still lacks before `contact-viz extract` can run on it, one line each.
+
+    Checks masks/, a depth source (depth/, disparity/, or right/ for SGBM) and a calibration file;
+    an empty list means nothing is missing. Importers print this; the reader's errors say the same.
+    """
+    from contact_viz.calibration import calibration_files
+
+    root = Path(root)
+    out = []
+    if not (root / "masks").is_dir():
+        out.append(_MASKS_HINT)
+    has_depth = any(
+        (root / sub).is_dir() and any((root / sub).iterdir()) for sub in ("depth", "disparity")
+    )
+    if not has_depth:
+        has_right = (root / "right").is_dir() and any((root / "right").iterdir())
+        fallback = ("; without them depth is computed from left/ + right/ with OpenCV SGBM (much worse)"
+                    if has_right else "; there is no right/ to compute SGBM depth from, so one of them is needed")
+        out.append(_DEPTH_HINT + fallback)
+    if not calibration_files(root):
+        out.append("K.txt (or left.yaml + right.yaml, or stereo.yaml): the stereo calibration")
+    return out
+
+
+def _find_masks(root: Path, required: bool = True) -> dict[str, Path]:
+    """stem -> tool mask file (masks/<stem>.png); {} when masks/ is absent and not ``required``."""
     masks_dir = root / "masks"
     if not masks_dir.is_dir():
-        raise SessionError(
-            masks_dir, "missing: the tool masks (e.g. from SAM2) must be put in masks/<stem>.png, one per left frame "
-            "(palettized PNG with object ids, or 8-bit 0/255)"
-        )
+        if not required:
+            return {}
+        still = [line for line in missing_inputs(root) if not line.startswith("masks/")]
+        also = ("; still to fill as well: " + "; ".join(still)) if still else ""
+        raise SessionError(masks_dir, f"missing: {_MASKS_HINT}{also}")
     return _list_stems(masks_dir, (".png",))
 
 
-def find_depth_source(root: Path) -> dict[str, Path]:
-    """Where each frame's depth comes from: stem -> depth file (depth/<stem>.npy, else depth/<stem>.png).
+@dataclass(frozen=True)
+class _DepthSource:
+    """Where a session's depth comes from (one choice per session)."""
 
-    This is the one place that decides the depth source; new sources are added here.
+    kind: str  # one of DEPTH_SOURCES
+    files: dict[str, Path]  # stem -> depth or disparity file ({} for sgbm)
+    note: str  # one line for logs and the CLI
+
+
+def find_depth_source(
+    root: Path,
+    right_files: dict[str, Path],
+    stereo: StereoCalibration,
+    depth_method: str | None = "sgbm",
+) -> _DepthSource:
+    """Choose the session's depth source: depth/, else disparity/, else ``depth_method`` from right/.
+
+    This is the one place that decides the depth source; new sources are added here. A folder
+    counts only if it holds files of its kind. Raises SessionError listing the options when
+    there is none (or disparity/ comes with a calibration whose images still need rectifying).
     """
     depth_dir = root / "depth"
-    if not depth_dir.is_dir():
-        raise SessionError(
-            depth_dir, "missing: depth is needed, e.g. FoundationStereo depth_meter.npy saved as depth/<stem>.npy "
-            "(float32 metres), or depth/<stem>.png (uint16 millimetres)"
+    if depth_dir.is_dir():
+        files = {**_list_stems(depth_dir, (".png",)), **_list_stems(depth_dir, (".npy",))}  # .npy wins over .png
+        if files:
+            return _DepthSource("depth", files, f"depth from depth/ ({len(files)} files)")
+    disparity_dir = root / "disparity"
+    if disparity_dir.is_dir():
+        files = _list_stems(disparity_dir, (".npy",))
+        if files:
+            if stereo.rectification is not None:
+                raise SessionError(
+                    disparity_dir, f"expected disparities of rectified pairs, but {stereo.describe()}: the "
+                    "left/right images are raw. Rectify them before running the stereo network and use a "
+                    "calibration of the rectified cameras (K.txt, or rectified: 1)"
+                )
+            return _DepthSource(
+                "disparity", files, f"depth from disparity/ ({len(files)} files) with fx * baseline / disparity"
+            )
+    if depth_method is not None and right_files:
+        return _DepthSource(
+            depth_method, {}, f"depth computed from left/ + right/ with OpenCV {depth_method.upper()} "
+            "(no depth/ or disparity/; FoundationStereo gives far better depth)"
         )
-    return {**_list_stems(depth_dir, (".png",)), **_list_stems(depth_dir, (".npy",))}  # .npy wins over .png
+    if right_files:
+        third = "right/ is present but depth_method=None turns SGBM off"
+    else:
+        third = "right/<stem>.png|jpg rectified right frames, to compute depth with OpenCV SGBM (worse)"
+    raise SessionError(
+        depth_dir, "missing: no depth source; expected one of: (1) depth/<stem>.npy (float32 metres, e.g. "
+        "FoundationStereo's depth_meter.npy) or depth/<stem>.png (uint16 millimetres); (2) disparity/<stem>.npy "
+        f"(float32 px, FoundationStereo's raw disparity, converted with the calibration); (3) {third}. "
+        "FoundationStereo is recommended"
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -615,6 +633,26 @@ def read_depth_m(path: Path) -> np.ndarray:
     raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
 
 
+def read_disparity_px(path: Path) -> np.ndarray:
+    """Decode a disparity .npy (FoundationStereo's raw output) to (H, W) float32 px.
+
+    NaN where the disparity is not a finite positive number.
+    """
+    what = "a 2-D float32 disparity array in pixels (.npy)"
+    try:
+        raw = np.load(path, allow_pickle=False)
+    except FileNotFoundError as exc:
+        raise SessionError(path, f"expected {what}, file missing") from exc
+    except _DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
+    is_float = isinstance(raw, np.ndarray) and raw.dtype.kind == "f" and raw.dtype.itemsize in (4, 8)
+    if not is_float or raw.ndim != 2:
+        shape = getattr(raw, "shape", None)
+        dtype = getattr(raw, "dtype", type(raw).__name__)
+        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+    return _invalid_to_nan(np.array(raw, dtype=np.float32))
+
+
 _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.10 decodes straight to RGB
 
 
@@ -647,11 +685,16 @@ class Session:
 
     Attributes (arrays are read-only, n = number of frames):
         root: session directory (absolute). name / phantom / task: from session.json.
-        fps: frames/s. calibration: K (px) and baseline (m).
+        fps: frames/s. calibration: rectified left K (px) and baseline (m).
+        stereo: the calibration file(s) read and, when the images are raw, the rectification.
+        rectification: maps applied on load to left/right/masks/depth (None if already rectified).
         stems: frame stems in numeric order. image_size: (height, width) px of the left images.
         timestamps_s: (n,) float64, s. force_xyz_n: (n, 3) float64, N (NaN = no sample).
         force_n: (n,) float64 magnitude, N (NaN = unknown). labels: (n,) int8 1/0/-1 (unknown).
         label_source: (n,) str "manual" / "force" / "none". has_right: right/ holds images.
+        depth_source: "depth", "disparity" or "sgbm" (see DEPTH_SOURCES). depth_note: one line
+        saying where depth comes from. depth_config: what the depth depends on, for cache keys.
+        depth_cache_dir: where SGBM disparities are cached (None for other sources).
     """
 
     def __init__(
@@ -675,13 +718,23 @@ class Session:
         mask_files: dict[str, Path],
         depth_files: dict[str, Path],
         object_id: int | None,
+        depth_source: str = "depth",
+        depth_note: str = "depth from depth/",
+        stereo: StereoCalibration | None = None,
+        sgbm_cache: DisparityCache | None = None,
     ) -> None:
+        if depth_source not in DEPTH_SOURCES:
+            raise ValueError(f"depth_source must be one of {DEPTH_SOURCES}, got {depth_source!r}")
+        if depth_source == "sgbm" and sgbm_cache is None:
+            raise ValueError("depth_source 'sgbm' needs an sgbm_cache")
         self.root = root
         self.name = name
         self.phantom = phantom
         self.task = task
         self.fps = fps
         self.calibration = calibration
+        self.stereo = stereo
+        self.rectification: Rectification | None = stereo.rectification if stereo is not None else None
         self.stems = stems
         self.image_size = image_size
         self.timestamps_s = _read_only(timestamps_s)
@@ -691,10 +744,17 @@ class Session:
         self.label_source = _read_only(label_source)
         self.has_right = bool(right_files)
         self.object_id = object_id
+        self.depth_source = depth_source
+        self.depth_note = depth_note
         self._left_files = left_files
         self._right_files = right_files
         self._mask_files = mask_files
-        self._depth_files = depth_files
+        self._depth_files = depth_files  # stem -> depth/ or disparity/ file, by depth_source
+        self._sgbm = sgbm_cache if depth_source == "sgbm" else None
+        self.depth_cache_dir = self._sgbm.directory if self._sgbm is not None else None
+        self.depth_config = {"source": depth_source}
+        if self._sgbm is not None:
+            self.depth_config["sgbm"] = asdict(self._sgbm.params)
 
     def __len__(self) -> int:
         return len(self.stems)
@@ -720,6 +780,76 @@ class Session:
             raise SessionError(expected, f"missing: expected {what} for frame {stem!r}")
         return path
 
+    def _image(self, side: str, stem: str, decoded: dict[str, np.ndarray]) -> np.ndarray:
+        """Frame ``stem``'s ``side`` image, (H, W, 3) uint8 RGB, rectified if needed; memoized in ``decoded``."""
+        if side not in decoded:
+            files = self._left_files if side == "left" else self._right_files
+            expected = self.root / side / f"{stem}.png"
+            path = self._layer_path(files, stem, expected, f"a {side} image")
+            rgb = read_rgb(path)
+            self._check_shape(path, rgb, f"{side} image")
+            if self.rectification is not None:
+                rgb = self.rectification.apply(side, rgb)
+            decoded[side] = rgb
+        return decoded[side]
+
+    def _mask(self, stem: str) -> np.ndarray:
+        expected = self.root / "masks" / f"{stem}.png"
+        path = self._layer_path(self._mask_files, stem, expected, "a tool mask PNG")
+        tool_mask = read_tool_mask(path, self.object_id)
+        self._check_shape(path, tool_mask, "tool mask")
+        if self.rectification is not None:
+            tool_mask = self.rectification.apply("left", tool_mask, nearest=True)
+        return tool_mask
+
+    def _depth(self, stem: str, decoded: dict[str, np.ndarray]) -> tuple[np.ndarray, str]:
+        """(depth (H, W) float32 m NaN-invalid, origin "file" / "cached" / "computed") of frame ``stem``."""
+        cal = self.calibration
+        if self.depth_source == "depth":
+            path = self._layer_path(
+                self._depth_files, stem, self.root / "depth" / f"{stem}.npy",
+                "a depth map (.npy float32 m or .png uint16 mm)",
+            )
+            depth_m = read_depth_m(path)
+            self._check_shape(path, depth_m, "depth map")
+            if self.rectification is not None:
+                depth_m = self.rectification.apply("left", depth_m, nearest=True)
+            return depth_m, "file"
+        if self.depth_source == "disparity":
+            path = self._layer_path(
+                self._depth_files, stem, self.root / "disparity" / f"{stem}.npy", "a disparity map (.npy float32 px)"
+            )
+            disparity = read_disparity_px(path)
+            self._check_shape(path, disparity, "disparity map")
+            return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), "file"
+        left_path = self._left_files[stem]
+        right_path = self._layer_path(
+            self._right_files, stem, self.root / "right" / f"{stem}.png",
+            "a right image (SGBM depth needs the stereo pair)",
+        )
+        disparity, cached = self._sgbm.disparity(
+            stem, left_path, right_path,
+            lambda: (self._image("left", stem, decoded), self._image("right", stem, decoded)),
+        )
+        return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
+            "cached" if cached else "computed"
+        )
+
+    def load_depth(self, index: int, with_origin: bool = False):
+        """Frame ``index``'s depth (H, W) float32 m (NaN invalid), or a BadFrame.
+
+        With ``with_origin`` a (depth, origin) pair, origin = "file" (depth/ or disparity/),
+        "cached" or "computed" (SGBM). Used by `contact-viz depth` to fill the cache.
+        """
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for a session of {len(self)} frames")
+        stem = self.stems[index]
+        try:
+            depth_m, origin = self._depth(stem, {})
+        except SessionError as error:
+            return BadFrame(index=index, stem=stem, timestamp_s=float(self.timestamps_s[index]), error=error)
+        return (depth_m, origin) if with_origin else depth_m
+
     def load_frame(self, index: int, layers: Sequence[str] = ("mask", "depth")) -> Frame | BadFrame:
         """Decode the requested ``layers`` of frame ``index`` (synchronously); a BadFrame on any problem."""
         wanted = _check_layers(layers)
@@ -731,29 +861,16 @@ class Session:
         stem = self.stems[index]
         timestamp_s = float(self.timestamps_s[index])
         tool_mask = depth_m = left_rgb = right_rgb = None
+        decoded: dict[str, np.ndarray] = {}  # rectified images decoded for this frame, shared by the layers
         try:
             if "mask" in layers:
-                expected = self.root / "masks" / f"{stem}.png"
-                path = self._layer_path(self._mask_files, stem, expected, "a tool mask PNG")
-                tool_mask = read_tool_mask(path, self.object_id)
-                self._check_shape(path, tool_mask, "tool mask")
+                tool_mask = self._mask(stem)
             if "depth" in layers:
-                path = self._layer_path(
-                    self._depth_files,
-                    stem,
-                    self.root / "depth" / f"{stem}.npy",
-                    "a depth map (.npy float32 m or .png uint16 mm)",
-                )
-                depth_m = read_depth_m(path)
-                self._check_shape(path, depth_m, "depth map")
+                depth_m, _ = self._depth(stem, decoded)
             if "left" in layers:
-                path = self._left_files[stem]
-                left_rgb = read_rgb(path)
-                self._check_shape(path, left_rgb, "left image")
+                left_rgb = self._image("left", stem, decoded)
             if "right" in layers and stem in self._right_files:
-                path = self._right_files[stem]
-                right_rgb = read_rgb(path)
-                self._check_shape(path, right_rgb, "right image")
+                right_rgb = self._image("right", stem, decoded)
         except SessionError as error:
             return BadFrame(index=index, stem=stem, timestamp_s=timestamp_s, error=error)
         return Frame(
@@ -847,15 +964,29 @@ def _image_size(path: Path) -> tuple[int, int]:
 
 
 def open_session(
-    path: str | Path, *, object_id: int | None = None, label_params: LabelParams = LabelParams()
+    path: str | Path,
+    *,
+    object_id: int | None = None,
+    label_params: LabelParams = LabelParams(),
+    cache_dir: str | Path | None = None,
+    depth_method: str | None = "sgbm",
+    sgbm_params: SGBMParams | None = None,
+    require_masks: bool = True,
 ) -> Session:
     """Open and validate a session directory (see the module docstring for the format).
 
     ``object_id`` picks one object id from palettized / single-channel masks (default: any
     nonzero pixel is tool). ``label_params`` sets the force threshold of the contact labels.
-    Raises SessionError (naming the file and what was expected) on any session-wide problem;
-    warns (SessionWarning) about CSV rows naming stems that are not in left/.
+    ``depth_method`` computes depth from the stereo pair when there is neither depth/ nor
+    disparity/ ("sgbm", with ``sgbm_params``; None = never compute), cached under ``cache_dir``
+    (default: the package cache, see contact_viz.cache; never inside the session).
+    ``require_masks=False`` allows a session without masks/ (mask layers then give BadFrames),
+    e.g. to precompute depth. The chosen depth source is logged (INFO) and kept in
+    ``Session.depth_note``. Raises SessionError (naming the file and what was expected) on any
+    session-wide problem; warns (SessionWarning) about CSV rows naming stems that are not in left/.
     """
+    if depth_method is not None and depth_method not in DEPTH_METHODS:
+        raise ValueError(f"depth_method must be one of {DEPTH_METHODS} or None, got {depth_method!r}")
     if object_id is not None and (isinstance(object_id, bool) or not isinstance(object_id, int) or object_id < 1):
         raise ValueError(f"object_id must be a positive integer (0 is background) or None, got {object_id!r}")
     root = Path(path).expanduser()
@@ -873,12 +1004,18 @@ def open_session(
     if not left_files:
         raise SessionError(left_dir, "expected rectified left frames left/<stem>.png|jpg|jpeg, found none")
     stems = sorted(left_files, key=natural_key)
-    calibration = read_calibration(root / "K.txt")
-    mask_files = _find_masks(root)
-    depth_files = find_depth_source(root)
+    image_size = _image_size(left_files[stems[0]])
+    stereo = read_calibration(root, image_size)
+    mask_files = _find_masks(root, required=require_masks)
     right_dir = root / "right"
     right_files = _list_stems(right_dir, IMAGE_SUFFIXES) if right_dir.is_dir() else {}
-    image_size = _image_size(left_files[stems[0]])
+    source = find_depth_source(root, right_files, stereo, depth_method)
+    sgbm_cache = None
+    if source.kind == "sgbm":
+        resolved = (sgbm_params or SGBMParams()).resolve(image_size[1])
+        sgbm_cache = DisparityCache.for_session(root, stereo.files, resolved, cache_dir)
+    note = f"{root.name}: {source.note}; {stereo.describe()}"
+    log.info(note)
 
     fps = float(meta.get("fps", DEFAULT_FPS))
     frames_csv = root / "frames.csv"
@@ -906,7 +1043,7 @@ def open_session(
         phantom=meta.get("phantom"),
         task=meta.get("task"),
         fps=fps,
-        calibration=calibration,
+        calibration=stereo.calibration,
         stems=stems,
         image_size=image_size,
         timestamps_s=timestamps_s,
@@ -917,6 +1054,10 @@ def open_session(
         left_files=left_files,
         right_files=right_files,
         mask_files=mask_files,
-        depth_files=depth_files,
+        depth_files=source.files,
         object_id=object_id,
+        depth_source=source.kind,
+        depth_note=note,
+        stereo=stereo,
+        sgbm_cache=sgbm_cache,
     )

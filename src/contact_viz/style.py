@@ -3,7 +3,10 @@
 Layer classes are the ``LAYER_*`` ids of :class:`contact_viz.patch.PatchResult.layer_ids`; the
 Rerun ``AnnotationContext`` and the figure legends are both built from :data:`LAYER_STYLES`, so a
 class is called and coloured the same everywhere. Colours are the colour-blind-safe Okabe-Ito
-palette, as 8-bit RGBA tuples; :func:`to_float_rgba` converts one for matplotlib.
+palette, as 8-bit RGBA tuples; :func:`to_float_rgba` converts one for matplotlib. The alpha of a
+layer colour is that class's overlay opacity (the thin exclusion and band layers are drawn more
+opaque than the tool interior, so the tool stays visible and the thin rings stay legible). Series
+colours are chosen to read on the viewer's dark plot background (no near-black lines).
 
 Pure data: no imports beyond the patch ids.
 """
@@ -15,6 +18,7 @@ from dataclasses import dataclass
 from contact_viz.patch import LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE
 
 __all__ = [
+    "DEPTH_COLORMAP",
     "DIAGNOSTIC_STYLES",
     "LAYER_OVERLAY_OPACITY",
     "LAYER_STYLES",
@@ -24,6 +28,7 @@ __all__ = [
     "SeriesStyle",
     "layer_style",
     "to_float_rgba",
+    "with_alpha",
 ]
 
 RGBA = tuple[int, int, int, int]
@@ -38,10 +43,20 @@ BLUE: RGBA = (0, 114, 178, 255)
 VERMILLION: RGBA = (213, 94, 0, 255)
 REDDISH_PURPLE: RGBA = (204, 121, 167, 255)
 GREY: RGBA = (150, 150, 150, 255)
-DARK_GREY: RGBA = (60, 60, 60, 255)
+LIGHT_GREY: RGBA = (215, 215, 215, 255)
+WHITE: RGBA = (255, 255, 255, 255)
 TRANSPARENT: RGBA = (0, 0, 0, 0)
 
-LAYER_OVERLAY_OPACITY = 0.55  # opacity of the layer overlay drawn over the left image and the depth image, 0-1
+INTERIOR_ALPHA = 110  # overlay alpha of the tool interior (a large area over the tool), 0-255
+THIN_LAYER_ALPHA = 235  # overlay alpha of the thin layers (tool edge, excluded ring, exterior band), 0-255
+
+LAYER_OVERLAY_OPACITY = 1.0  # overall opacity of the layer overlay (per class: the alpha of its colour), 0-1
+DEPTH_COLORMAP = "Grayscale"  # Rerun colormap of the depth image: grey, so the coloured layer overlay stands out
+
+
+def with_alpha(rgba: RGBA, alpha: int) -> RGBA:
+    """``rgba`` with its alpha replaced by ``alpha`` (0-255)."""
+    return (rgba[0], rgba[1], rgba[2], alpha)
 
 
 @dataclass(frozen=True)
@@ -55,10 +70,10 @@ class LayerStyle:
 
 LAYER_STYLES: tuple[LayerStyle, ...] = (
     LayerStyle(LAYER_BACKGROUND, "background", TRANSPARENT),
-    LayerStyle(LAYER_INTERIOR, "tool interior", BLUE),
-    LayerStyle(LAYER_TOOL_EDGE, "tool edge (excluded)", SKY_BLUE),
-    LayerStyle(LAYER_RING, "excluded ring", YELLOW),
-    LayerStyle(LAYER_BAND, "exterior band", BLUISH_GREEN),
+    LayerStyle(LAYER_INTERIOR, "tool interior", with_alpha(BLUE, INTERIOR_ALPHA)),
+    LayerStyle(LAYER_TOOL_EDGE, "tool edge (excluded)", with_alpha(SKY_BLUE, THIN_LAYER_ALPHA)),
+    LayerStyle(LAYER_RING, "excluded ring", with_alpha(YELLOW, THIN_LAYER_ALPHA)),
+    LayerStyle(LAYER_BAND, "exterior band", with_alpha(BLUISH_GREEN, THIN_LAYER_ALPHA)),
 )
 
 
@@ -70,12 +85,13 @@ def layer_style(class_id: int) -> LayerStyle:
     raise KeyError(f"no layer class {class_id!r}; known ids: {[s.class_id for s in LAYER_STYLES]}")
 
 
-# The selected patch and its 3D evidence.
+# The selected patch and its 3D evidence. White: it must read on red tissue, on the grey depth image
+# and over the coloured layers alike (vermillion vanished on tissue), and its label text takes its colour.
 PATCH_STYLES: dict[str, RGBA] = {
-    "window": VERMILLION,  # the N2 window of the selected patch (2D box)
+    "window": WHITE,  # the N2 window of the selected patch (2D box)
     "tissue_points": BLUISH_GREEN,  # band pixels of the N2 window whose distance entered the median (3D)
-    "tool_points": BLUE,  # interior pixels of N1 whose depth gave the tool depth (3D)
-    "gap": VERMILLION,  # arrow from the tool depth to the tissue along the patch centre's ray (3D)
+    "tool_points": SKY_BLUE,  # interior pixels of N1 whose depth gave the tool depth (3D)
+    "gap": WHITE,  # arrow from the tool depth to the tissue along the patch centre's ray (3D)
 }
 
 
@@ -90,23 +106,26 @@ class SeriesStyle:
 
 
 # Keys are the series' short names, used by the viewer to pick entity paths.
+# Contact: the viewer draws posterior, prediction, threshold, truth in that order (entity order), so
+# the three 0/1-ish lines are nested, widest first: where they agree the wide posterior shows as the
+# edges, the prediction as the core and the truth as a hairline inside it.
 SERIES_STYLES: dict[str, SeriesStyle] = {
-    "distance_mm": SeriesStyle("distance (mm)", VERMILLION, 2.0),
-    "signal": SeriesStyle("signal -log10|d|", REDDISH_PURPLE, 2.0),
-    "force_n": SeriesStyle("|F| (N)", DARK_GREY, 2.0),
-    "force_x_n": SeriesStyle("Fx (N)", BLUE, 1.0),
+    "distance_mm": SeriesStyle("distance (mm)", ORANGE, 2.0),
+    "signal": SeriesStyle("signal -log10 max(|d|, eps), d in m", REDDISH_PURPLE, 2.0),
+    "force_n": SeriesStyle("|F| (N)", LIGHT_GREY, 2.0),
+    "force_x_n": SeriesStyle("Fx (N)", SKY_BLUE, 1.0),
     "force_y_n": SeriesStyle("Fy (N)", BLUISH_GREEN, 1.0),
     "force_z_n": SeriesStyle("Fz (N)", ORANGE, 1.0),
-    "contact_truth": SeriesStyle("ground truth contact", DARK_GREY, 2.0, step=True),
-    "posterior": SeriesStyle("HMM posterior P(contact)", BLUE, 2.0),
+    "contact_truth": SeriesStyle("ground truth contact (0/1)", WHITE, 1.2, step=True),
+    "posterior": SeriesStyle("HMM posterior P(contact)", SKY_BLUE, 5.0),
     "threshold": SeriesStyle("decision threshold", GREY, 1.0),
-    "predicted": SeriesStyle("predicted contact", VERMILLION, 1.5, step=True),
-    "invalid_depth_fraction": SeriesStyle("invalid depth in band (fraction)", GREY, 1.5),
+    "predicted": SeriesStyle("predicted contact (0/1)", VERMILLION, 2.5, step=True),
+    "invalid_depth_fraction": SeriesStyle("invalid depth in band (fraction)", LIGHT_GREY, 1.5),
 }
 
 # One colour per diagnostic code (contact_viz.diagnostics), drawn as markers where the check fires.
 DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
-    "bad_frame": SeriesStyle("bad frame", BLACK, 6.0),
+    "bad_frame": SeriesStyle("bad frame", WHITE, 6.0),
     "no_tool": SeriesStyle("no tool in mask", SKY_BLUE, 6.0),
     "mask_area_jump": SeriesStyle("mask area jump", ORANGE, 6.0),
     "invalid_depth": SeriesStyle("invalid depth in band", GREY, 6.0),

@@ -1,0 +1,116 @@
+"""Benchmark: SGBM depth accuracy on real data (Middlebury) and its speed, incl. how to use 2 cores.
+
+1. Accuracy on the Middlebury 2014 "Motorcycle" pair shipped by scikit-image (741x500, true
+   disparity): share of pixels valid in both maps within 2 px of the truth, valid fraction,
+   ms per frame, for the default SGBMParams and a few variants.
+2. Speed at endoscope sizes (1280x1024 and 1920x1080; the Middlebury pair resized, so only the
+   timing means something).
+3. Throughput of many frames on 2 cores: OpenCV's own threads vs 2 worker threads (what
+   `contact-viz depth` does) vs 2 processes.
+
+Run: .venv/bin/python benchmarks/bench_stereo.py [--repeats 5] [--frames 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+import cv2
+import numpy as np
+from skimage import data
+
+from contact_viz.stereo import SGBMParams, sgbm_disparity
+
+
+def accuracy(left, right, truth, params: SGBMParams, repeats: int) -> tuple[float, float, float]:
+    """(share within 2 px of truth over pixels valid in both, valid fraction, median ms/frame)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        disparity = sgbm_disparity(left, right, params)
+        times.append(1000 * (time.perf_counter() - t0))
+    both = np.isfinite(disparity) & np.isfinite(truth)
+    within = float(np.mean(np.abs(disparity[both] - truth[both]) <= 2.0))
+    return within, float(np.isfinite(disparity).mean()), float(np.median(times))
+
+
+def _one(pair) -> float:
+    left, right = pair
+    return float(np.isfinite(sgbm_disparity(left, right, SGBMParams())).mean())
+
+
+def _init_worker(threads: int) -> None:
+    cv2.setNumThreads(threads)
+
+
+def throughput(pairs, mode: str) -> float:
+    """ms per frame over ``pairs`` with one parallel strategy."""
+    t0 = time.perf_counter()
+    if mode == "1 thread, OpenCV 2 threads":
+        cv2.setNumThreads(2)
+        [_one(p) for p in pairs]
+    elif mode == "1 thread, OpenCV 1 thread":
+        cv2.setNumThreads(1)
+        [_one(p) for p in pairs]
+    elif mode == "2 threads, OpenCV 2 threads":
+        cv2.setNumThreads(2)
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(_one, pairs))
+    elif mode == "2 threads, OpenCV 1 thread":
+        cv2.setNumThreads(1)
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(_one, pairs))
+    elif mode == "2 processes, OpenCV 1 thread":
+        with ProcessPoolExecutor(2, initializer=_init_worker, initargs=(1,)) as pool:
+            list(pool.map(_one, pairs))
+    cv2.setNumThreads(2)
+    return 1000 * (time.perf_counter() - t0) / len(pairs)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--frames", type=int, default=8)
+    args = parser.parse_args()
+    left, right, truth = data.stereo_motorcycle()
+    print(f"Middlebury Motorcycle {left.shape[1]}x{left.shape[0]} (skimage.data.stereo_motorcycle), "
+          f"{np.isfinite(truth).mean():.1%} of pixels with true disparity; OpenCV {cv2.__version__}, "
+          f"{cv2.getNumThreads()} threads")
+    variants = {
+        "default (LR check, 3-way)": SGBMParams(),
+        "no LR check": SGBMParams(lr_check=False),
+        "block 5": SGBMParams(block_size=5),
+        "mode hh (8 paths)": SGBMParams(mode="hh"),
+        "downscale 2": SGBMParams(downscale=2),
+    }
+    for name, params in variants.items():
+        p = params.resolve(left.shape[1])
+        within, valid, ms = accuracy(left, right, truth, params, args.repeats)
+        print(f"  {name:28s} ({p.num_disparities} disp, block {p.block_size}): {within:.2%} within 2 px, "
+              f"valid {valid:.1%}, {ms:.0f} ms/frame")
+
+    for width, height in ((1280, 1024), (1920, 1080)):
+        big_l = cv2.resize(left, (width, height), interpolation=cv2.INTER_CUBIC)
+        big_r = cv2.resize(right, (width, height), interpolation=cv2.INTER_CUBIC)
+        for name, params in (("default", SGBMParams()), ("downscale 2", SGBMParams(downscale=2))):
+            p = params.resolve(width)
+            times = []
+            for _ in range(max(1, args.repeats // 2)):
+                t0 = time.perf_counter()
+                sgbm_disparity(big_l, big_r, params)
+                times.append(1000 * (time.perf_counter() - t0))
+            print(f"  {width}x{height} {name:12s} ({p.num_disparities} disp, block {p.block_size} at 1/{p.downscale}): "
+                  f"{np.median(times):.0f} ms/frame")
+
+    width, height = 1280, 1024
+    pairs = [(cv2.resize(left, (width, height)), cv2.resize(right, (width, height)))] * args.frames
+    print(f"{args.frames} frames of {width}x{height} on {cv2.getNumberOfCPUs()} CPUs:")
+    for mode in ("1 thread, OpenCV 1 thread", "1 thread, OpenCV 2 threads", "2 threads, OpenCV 1 thread",
+                 "2 threads, OpenCV 2 threads", "2 processes, OpenCV 1 thread"):
+        print(f"  {mode:30s}: {throughput(pairs, mode):.0f} ms/frame")
+
+
+if __name__ == "__main__":
+    main()
