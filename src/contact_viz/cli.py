@@ -57,27 +57,39 @@ def _inside(path: Path, directory: Path) -> bool:
         return False
 
 
+ObjectId = Annotated[Optional[int], typer.Option(help="Use only this object id of palettized masks.")]
+ContactForce = Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")]
+ParamsFile = Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields "
+                       "(e.g. from recipes/grid_search.py).")]
+CacheDir = Annotated[Optional[Path], typer.Option(help="Feature cache [default: ~/.cache/contact-viz].")]
+
+
+def _resolve_params(params_file: Optional[Path], contact_force: float):
+    """PatchParams from --params (defaults otherwise) and LabelParams from --contact-force; exits on error."""
+    from .params import LabelParams, PatchParams, from_dict
+
+    try:
+        params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
+        return params, LabelParams(contact_force_n=contact_force)
+    except ValueError as exc:
+        _fail(str(exc))
+
+
 @app.command()
 def extract(
     session_dir: Annotated[Path, typer.Argument(help="Session directory (see README: session format).")],
     output: Annotated[Optional[Path], typer.Option("-o", "--output", help="features CSV to write "
                       "[default: results/<session name>/features.csv]")] = None,
-    object_id: Annotated[Optional[int], typer.Option(help="Use only this object id of palettized masks.")] = None,
-    contact_force: Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")] = 2.0,
-    params_file: Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields "
-                           "(e.g. from recipes/grid_search.py).")] = None,
+    object_id: ObjectId = None,
+    contact_force: ContactForce = 2.0,
+    params_file: ParamsFile = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
     from .errors import SessionError
     from .extract import BadFrameWarning, extract_features, run_config, write_features
-    from .params import LabelParams, PatchParams, from_dict
     from .session import open_session
 
-    try:
-        params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
-        label_params = LabelParams(contact_force_n=contact_force)
-    except ValueError as exc:
-        _fail(str(exc))
+    params, label_params = _resolve_params(params_file, contact_force)
     try:
         session = open_session(session_dir, object_id=object_id, label_params=label_params)
     except SessionError as exc:
@@ -150,12 +162,13 @@ class _Features:
         self.name, self.frames, self.signal, self.labels = name, frames, signal, labels
 
 
-def _load_features(sources: list[Path], params, label_params, object_id, cache_dir, model=None) -> list[_Features]:
-    """Session directories -> features (extracted with ``params``, cached); or features CSV files
-    written by `contact-viz extract` (their configuration must match ``model``'s parameters)."""
+def _load_features(sources: list[Path], params, label_params, object_id, cache_dir) -> list[_Features]:
+    """Features for fit / evaluate / predict, each source either a session directory (extracted
+    with ``params``, cached) or a features CSV written by `contact-viz extract`, whose saved
+    configuration must have the same patch parameters as ``params``."""
     from .errors import SessionError
     from .extract import cached_features, feature_arrays, read_features
-    from .model_file import check_params
+    from .model_file import params_mismatch
     from .params import PatchParams, from_dict
     from .session import open_session
 
@@ -166,13 +179,12 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
                 config_path = source.with_name(source.name + ".json")
                 if not config_path.exists():
                     _fail(f"{config_path}: missing; a features CSV needs the configuration `extract` writes beside it")
-                found = from_dict(PatchParams, json.loads(config_path.read_text())["patch_params"])
-                if model is not None:
-                    check_params(model, found, str(source))
-                elif found != params:
-                    check_params_against(params, found, str(source))
-                rows = read_features(source)
-                name = json.loads(config_path.read_text())["session"]["name"]
+                config = json.loads(config_path.read_text())
+                diff = params_mismatch(params, from_dict(PatchParams, config["patch_params"]))
+                if diff:
+                    _fail(f"{source}: features were computed with other patch parameters than the model's "
+                          f"({'; '.join(diff)}); re-extract them with the model's parameters")
+                rows, name = read_features(source), config["session"]["name"]
             else:
                 session = open_session(source, object_id=object_id, label_params=label_params)
                 name = session.name
@@ -181,8 +193,8 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
                     rows, cached = cached_features(
                         session, params, label_params=label_params, cache_dir=cache_dir,
                         progress=lambda done: progress.update(task, completed=done))
-                    progress.update(task, completed=len(session), description=f"features {name}"
-                                    + (" (cached)" if cached else ""))
+                    if cached:
+                        progress.update(task, completed=len(session), description=f"features {name} (cached)")
         except (SessionError, ValueError, KeyError) as exc:
             _fail(str(exc))
         signal, labels = feature_arrays(rows)
@@ -193,36 +205,20 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     return out
 
 
-def check_params_against(expected, found, where: str) -> None:
-    from .model_file import params_mismatch
-
-    diff = params_mismatch(expected, found)
-    raise ValueError(f"{where}: features were computed with other patch parameters ({'; '.join(diff)})")
-
-
-CacheDir = Annotated[Optional[Path], typer.Option(help="Feature cache [default: ~/.cache/contact-viz].")]
-ObjectId = Annotated[Optional[int], typer.Option(help="Use only this object id of palettized masks.")]
-
-
 @app.command()
 def fit(
     train_sessions: Annotated[list[Path], typer.Argument(help="Labelled training session directories (K >= 2).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="model.json to write.")] = Path("model.json"),
-    params_file: Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields.")] = None,
-    contact_force: Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")] = 2.0,
+    params_file: ParamsFile = None,
+    contact_force: ContactForce = 2.0,
     object_id: ObjectId = None,
     cache_dir: CacheDir = None,
 ) -> None:
     """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions."""
     from .hmm import LosoEnsemble
     from .model_file import ContactModel, save_model
-    from .params import LabelParams, PatchParams, from_dict
 
-    try:
-        params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
-        label_params = LabelParams(contact_force_n=contact_force)
-    except ValueError as exc:
-        _fail(str(exc))
+    params, label_params = _resolve_params(params_file, contact_force)
     if len(train_sessions) < 2:
         _fail(f"fit needs at least 2 training sessions for leave-one-session-out, got {len(train_sessions)}")
     features = _load_features(train_sessions, params, label_params, object_id, cache_dir)
@@ -251,7 +247,7 @@ def _model_and_features(model_path: Path, sources: list[Path], object_id, cache_
         model = load_model(model_path)
     except ValueError as exc:
         _fail(str(exc))
-    features = _load_features(sources, model.patch_params, model.label_params, object_id, cache_dir, model=model)
+    features = _load_features(sources, model.patch_params, model.label_params, object_id, cache_dir)
     return model, features
 
 
@@ -361,25 +357,25 @@ def view(
     grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
     object_id: ObjectId = None,
-    contact_force: Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")] = 2.0,
-    params_file: Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields "
-                           "(ignored with --model: the model's are used).")] = None,
+    contact_force: ContactForce = 2.0,
+    params_file: ParamsFile = None,
 ) -> None:
-    """Run the pipeline frame by frame and log everything to one Rerun timeline."""
+    """Run the pipeline frame by frame and log everything to one Rerun timeline.
+
+    With --model the model's patch parameters are used (--params is then an error if it differs)."""
     from .errors import SessionError
-    from .params import LabelParams, PatchParams, from_dict
     from .session import open_session
 
+    params, label_params = _resolve_params(params_file, contact_force)
     model = None
     try:
         if model_path is not None:
-            from .model_file import load_model
+            from .model_file import check_params, load_model
 
             model = load_model(model_path)
+            if params_file is not None:
+                check_params(model, params, str(params_file))
             params = model.patch_params
-        else:
-            params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
-        label_params = LabelParams(contact_force_n=contact_force)
         session = open_session(session_dir, object_id=object_id, label_params=label_params)
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
