@@ -51,13 +51,14 @@ def literal_patch(depth, tool, p: PatchParams):
                 yield qy, qx
 
     band_pixels = [(int(y), int(x)) for y, x in zip(*np.nonzero(band))]  # row-major
-    d = {}
+    d, z_tool = {}, {}
     for y, x in band_pixels:
         if not valid[y, x]:
             continue
         tool_depths = [float(depth[q]) for q in window(y, x, p.n1 // 2) if interior[q] and valid[q]]
         if len(tool_depths) >= p.tau_tool:
-            d[(y, x)] = float(depth[y, x]) - sum(tool_depths) / len(tool_depths)
+            z_tool[(y, x)] = sum(tool_depths) / len(tool_depths)
+            d[(y, x)] = float(depth[y, x]) - z_tool[(y, x)]
     s = {}
     for y, x in band_pixels:
         near = [abs(d[q]) for q in window(y, x, p.n2 // 2) if q in d]
@@ -72,8 +73,9 @@ def literal_patch(depth, tool, p: PatchParams):
         out["reason"] = REASON_NO_CANDIDATE
     else:
         best = min(s, key=lambda q: s[q])  # first minimum in row-major order
-        in_window = sorted(d[q] for q in window(*best, p.n2 // 2) if q in d)
-        out.update(reason=None, best=best, score=s[best], distance=float(np.median(in_window)))
+        in_window = [q for q in window(*best, p.n2 // 2) if q in d]
+        out.update(reason=None, best=best, score=s[best], distance=float(np.median([d[q] for q in in_window])),
+                   tool_depth=sum(z_tool[q] for q in in_window) / len(in_window))
     return out
 
 
@@ -124,6 +126,7 @@ def assert_matches_literal(depth, tool, params):
     if slow["reason"] is None:
         assert fast.distance_m == pytest.approx(slow["distance"], abs=1e-6)
         assert fast.score_m == pytest.approx(slow["score"], abs=1e-9)
+        assert fast.tool_depth_m == pytest.approx(slow["tool_depth"], abs=1e-9)
         # The chosen centre is a minimiser of the literal score (ties may break either way
         # only when scores agree to rounding; then the windows hold the same distances).
         cx, cy = fast.center_xy

@@ -70,7 +70,9 @@ class PatchResult:
         ``s(p)`` at each band pixel, m; NaN where undefined (< tau_patch valid neighbours).
     center_xy : (x, y) of ``p*`` in pixels, or None.
     window_xyxy : (x0, y0, x1, y1) of ``N2(p*)`` clipped to the image, half-open, or None.
-    tool_depth_m : mean interior depth in ``N1(p*)`` (the tool depth behind ``d(p*)``), m, or NaN.
+    tool_depth_m : the tool depth behind the patch: mean over the valid pixels ``q`` of ``N2(p*)``
+        of their ``N1(q)`` interior depth, m, or NaN. (``p*`` itself may lack a tool depth: it
+        only needs ``tau_patch`` valid neighbours.)
     score_m : ``s(p*)``, m, or NaN.
     distance_m : median ``d`` over the valid pixels of ``N2(p*)``, m, or NaN.
     signal : ``-log10(max(|distance_m|, eps))``, or NaN.
@@ -285,13 +287,13 @@ class _Scores:
         return band_s
 
 
-def _patch_window(layers: _Layers, band_d: np.ndarray, band_s: np.ndarray, half2: int) -> tuple[int, float]:
-    """Index of p* (first minimum of s in row-major order) and the median d in its N2 window."""
+def _patch_window(layers: _Layers, band_d: np.ndarray, band_s: np.ndarray, half2: int) -> tuple[int, np.ndarray]:
+    """Index of p* (first minimum of s in row-major order) and the (N,) mask of the band pixels
+    with a defined d in its N2 window."""
     best = int(np.nanargmin(band_s))
     by, bx = layers.by, layers.bx
     cy, cx = int(by[best]), int(bx[best])
-    in_window = (np.isfinite(band_d) & (np.abs(by - cy) <= half2) & (np.abs(bx - cx) <= half2))
-    return best, float(np.median(band_d[in_window]))
+    return best, np.isfinite(band_d) & (np.abs(by - cy) <= half2) & (np.abs(bx - cx) <= half2)
 
 
 def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams = PatchParams()) -> PatchResult:
@@ -340,14 +342,16 @@ def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     n_cand = int(np.isfinite(band_s).sum())
     if n_cand == 0:
         return _result(REASON_NO_CANDIDATE, band_s=band_s)
-    best, distance = _patch_window(layers, band_d, band_s, scores.half2)
+    best, in_window = _patch_window(layers, band_d, band_s, scores.half2)
+    distance = float(np.median(band_d[in_window]))
     cx, cy = int(bx[best]) + x0, int(by[best]) + y0
     half2 = scores.half2
     return _result(
         None,
         center=(cx, cy),
         window=(max(cx - half2, 0), max(cy - half2, 0), min(cx + half2 + 1, width), min(cy + half2 + 1, height)),
-        tool_depth=tool_mean[best], score=band_s[best], distance=distance, band_s=band_s, n_cand=n_cand,
+        tool_depth=float(np.mean(tool_mean[in_window])), score=band_s[best], distance=distance, band_s=band_s,
+        n_cand=n_cand,
     )
 
 
@@ -386,5 +390,5 @@ def patch_distance_grid(
         scores = score_cache[s_key]
         band_s = scores.score(p.tau_patch)
         if np.isfinite(band_s).any():
-            out[i] = _patch_window(layers, band_d, band_s, scores.half2)[1]
+            out[i] = np.median(band_d[_patch_window(layers, band_d, band_s, scores.half2)[1]])
     return out

@@ -53,6 +53,7 @@ from contact_viz.style import (
     DIAGNOSTIC_STYLES,
     LAYER_OVERLAY_OPACITY,
     LAYER_STYLES,
+    PATCH_COLOUR_NAME,
     PATCH_STYLES,
     SERIES_STYLES,
 )
@@ -146,10 +147,12 @@ GAP_ARROW_RADIUS_M = 0.0002  # shaft radius of the gap arrow, m
 BOX_LINE_RADIUS_PX = 1.5  # half line width of the patch box, UI px (negative radii in Rerun = UI units)
 DIAGNOSTIC_LEVEL_STEP = 0.1  # height between two diagnostics' marker rows, above the invalid-depth fraction (0-1)
 
-# Default 3D camera of the blueprint, in the world (= left camera) frame, RDF, m: above and to the right of the
-# stereo camera, looking at a point on the optical axis at a typical endoscopic working distance, so the tool,
-# the tissue under it and the gap arrow are seen from the side rather than along the camera's own ray.
-EYE_POSITION_M = (0.075, -0.06, 0.0)  # eye position, m
+# Default 3D camera of the blueprint, in the world (= left camera) frame, RDF, m: above, to the left of and
+# slightly behind the stereo camera, looking at a point on the optical axis at a typical endoscopic working
+# distance, so the tool, the tissue under it, the gap arrow and the camera frustums are all in view, seen from
+# the side rather than along the camera's own ray. A fixed pose (the blueprint is made before any data is
+# read): for scenes much nearer or farther, the user moves the eye.
+EYE_POSITION_M = (-0.085, -0.07, -0.005)  # eye position, m
 EYE_TARGET_M = (0.0, 0.0, 0.085)  # point the eye looks at, m
 EYE_UP = (0.0, -1.0, 0.0)  # up direction of the eye (-y in RDF)
 
@@ -210,7 +213,7 @@ class FrameView:
 def _series_lines(key: str) -> rr.SeriesLines:
     style = SERIES_STYLES[key]
     return rr.SeriesLines(
-        colors=[style.rgba], widths=[style.width_px], names=[style.name],
+        colors=[style.rgba], widths=[style.width_px], names=[style.name], visible_series=[style.visible],
         interpolation_mode=rr.components.InterpolationMode.StepAfter if style.step else None,
     )
 
@@ -272,22 +275,32 @@ def log_static(
         )
 
 
+def layer_legend() -> str:
+    """The drawn layer classes in words ("blue: tool interior · ..."), for a view title.
+
+    Rerun shows no legend for a SegmentationImage (a class's name appears only on hover), so the
+    left image's title carries it, built from the same styles as the AnnotationContext.
+    """
+    return " · ".join(f"{s.colour_name}: {s.name}" for s in LAYER_STYLES if s.rgba[3] > 0)
+
+
 def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rrb.Blueprint:
     """The layout sent with every recording: images over the 3D scene on the left, stacked time series on the right.
 
-    Left column, top: the left image with the layer overlay and the patch box (large), and beside it
-    the right image over the depth image with the same overlay (each a quarter of the left image's
-    area, so the three images fill their panes with little letterboxing). Below: the 3D scene (RGB
-    cloud, patch points, gap arrow, camera frustums; the depth image's own back-projection is in the
-    scene but hidden until toggled on), seen from the side (EYE_*). Right column: distance, signal,
-    force, contact (truth / posterior / threshold / prediction) and diagnostics, all on the global
-    ``frame`` axis, then the text log. Single-series plots have no legend (the view name says what
-    and in which unit); the others have theirs in the corner their data leaves free.
+    Left column, top: the left image with the layer overlay and the patch box (large; its title
+    names the layer colours), and beside it the right image over the depth image with the same
+    overlay (each a quarter of the left image's area, so the three images fill their panes with
+    little letterboxing). Below: the 3D scene (RGB cloud, patch points, gap arrow, camera frustums;
+    the depth image's own back-projection is in the scene but hidden until toggled on), seen from
+    the side (EYE_*). Right column: distance, signal, force, contact (truth / posterior / threshold
+    / prediction) and diagnostics, all on the global ``frame`` axis, the text log in a tab beside
+    the diagnostics. Single-series plots have no legend (the view name says what and in which
+    unit); the others have theirs in a corner that the approach phase mostly leaves free.
     """
     linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
     no_legend = rrb.PlotLegend(visible=False)
-    left = rrb.Spatial2DView(name="left image + layers + patch", origin=ENTITY_LEFT_CAMERA)
-    depth = rrb.Spatial2DView(name="depth + layers", origin=ENTITY_DEPTH_CAMERA)
+    left = rrb.Spatial2DView(name=f"left · {layer_legend()}", origin=ENTITY_LEFT_CAMERA)
+    depth = rrb.Spatial2DView(name=f"depth + layers · {PATCH_COLOUR_NAME} box: patch", origin=ENTITY_DEPTH_CAMERA)
     scene = rrb.Spatial3DView(
         name="3D: cloud, patch points, gap",
         origin=ENTITY_WORLD,
@@ -317,16 +330,21 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
         rrb.TimeSeriesView(name=contact_name, origin=ENTITY_SERIES_CONTACT, axis_x=linked,
                            axis_y=rrb.ScalarAxis(range=(-0.05, 1.05)),
                            plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
-        rrb.TimeSeriesView(name="diagnostics: invalid depth (fraction), checks fired (markers)",
-                           origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked,
-                           axis_y=rrb.ScalarAxis(range=(-0.05, diagnostics_top)),
-                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
-        rrb.TextLogView(name="log", origin=ENTITY_LOG),
+        # the log shares a tab with the diagnostics plot: a sixth row would leave the plots too low for
+        # the viewer to label their y axes
+        rrb.Tabs(
+            rrb.TimeSeriesView(name="diagnostics: invalid depth (fraction), checks fired (markers)",
+                               origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked,
+                               axis_y=rrb.ScalarAxis(range=(-0.05, diagnostics_top)),
+                               plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftBottom)),
+            rrb.TextLogView(name="log", origin=ENTITY_LOG),
+            active_tab=0,
+        ),
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(images, scene, row_shares=[0.47, 0.53]),
-            rrb.Vertical(*series, row_shares=[1, 1, 1, 1.3, 1, 0.7]),
+            rrb.Vertical(*series, row_shares=[1.0, 0.9, 1.2, 1.1, 1.0]),
             column_shares=[3, 2],
         ),
         rrb.BlueprintPanel(state="collapsed"),

@@ -22,6 +22,7 @@ __all__ = [
     "DIAGNOSTIC_STYLES",
     "LAYER_OVERLAY_OPACITY",
     "LAYER_STYLES",
+    "PATCH_COLOUR_NAME",
     "PATCH_STYLES",
     "SERIES_STYLES",
     "LayerStyle",
@@ -66,14 +67,15 @@ class LayerStyle:
     class_id: int  # LAYER_* id in PatchResult.layer_ids
     name: str  # label shown in the viewer and figure legends
     rgba: RGBA  # colour, 8-bit RGBA (alpha 0 = not drawn)
+    colour_name: str = ""  # the colour in words, for legends that cannot show a swatch (view titles)
 
 
 LAYER_STYLES: tuple[LayerStyle, ...] = (
     LayerStyle(LAYER_BACKGROUND, "background", TRANSPARENT),
-    LayerStyle(LAYER_INTERIOR, "tool interior", with_alpha(BLUE, INTERIOR_ALPHA)),
-    LayerStyle(LAYER_TOOL_EDGE, "tool edge (excluded)", with_alpha(SKY_BLUE, THIN_LAYER_ALPHA)),
-    LayerStyle(LAYER_RING, "excluded ring", with_alpha(YELLOW, THIN_LAYER_ALPHA)),
-    LayerStyle(LAYER_BAND, "exterior band", with_alpha(BLUISH_GREEN, THIN_LAYER_ALPHA)),
+    LayerStyle(LAYER_INTERIOR, "tool interior", with_alpha(BLUE, INTERIOR_ALPHA), "blue"),
+    LayerStyle(LAYER_TOOL_EDGE, "tool edge (excluded)", with_alpha(SKY_BLUE, THIN_LAYER_ALPHA), "sky blue"),
+    LayerStyle(LAYER_RING, "excluded ring", with_alpha(YELLOW, THIN_LAYER_ALPHA), "yellow"),
+    LayerStyle(LAYER_BAND, "exterior band", with_alpha(BLUISH_GREEN, THIN_LAYER_ALPHA), "green"),
 )
 
 
@@ -87,6 +89,7 @@ def layer_style(class_id: int) -> LayerStyle:
 
 # The selected patch and its 3D evidence. White: it must read on red tissue, on the grey depth image
 # and over the coloured layers alike (vermillion vanished on tissue), and its label text takes its colour.
+PATCH_COLOUR_NAME = "white"  # PATCH_STYLES["window"] in words, for the view title
 PATCH_STYLES: dict[str, RGBA] = {
     "window": WHITE,  # the N2 window of the selected patch (2D box)
     "tissue_points": BLUISH_GREEN,  # band pixels of the N2 window whose distance entered the median (3D)
@@ -103,23 +106,27 @@ class SeriesStyle:
     rgba: RGBA  # line / marker colour, 8-bit RGBA
     width_px: float  # line width (or marker size for point series), UI px
     step: bool = False  # drawn as a step function (0/1 states) instead of a straight-line interpolation
+    visible: bool = True  # shown when the viewer opens (False: listed in the legend, one click shows it)
 
 
 # Keys are the series' short names, used by the viewer to pick entity paths.
-# Contact: the viewer draws posterior, prediction, threshold, truth in that order (entity order), so
-# the three 0/1-ish lines are nested, widest first: where they agree the wide posterior shows as the
-# edges, the prediction as the core and the truth as a hairline inside it.
+# Contact: Rerun draws a plot's series in entity-path order (posterior, predicted, threshold, truth; seen
+# on screenshots of Rerun 0.41), so the prediction is a wide band over the thinner posterior, which shows
+# wherever it is not within the band's half-width of 0 or 1, and the truth is a hairline on top: where
+# prediction and truth disagree reads at a glance, and the posterior's ramps around each switch stay visible.
 SERIES_STYLES: dict[str, SeriesStyle] = {
     "distance_mm": SeriesStyle("distance (mm)", ORANGE, 2.0),
     "signal": SeriesStyle("signal -log10 max(|d|, eps), d in m", REDDISH_PURPLE, 2.0),
     "force_n": SeriesStyle("|F| (N)", LIGHT_GREY, 2.0),
-    "force_x_n": SeriesStyle("Fx (N)", SKY_BLUE, 1.0),
-    "force_y_n": SeriesStyle("Fy (N)", BLUISH_GREEN, 1.0),
-    "force_z_n": SeriesStyle("Fz (N)", ORANGE, 1.0),
-    "contact_truth": SeriesStyle("ground truth contact (0/1)", WHITE, 1.2, step=True),
-    "posterior": SeriesStyle("HMM posterior P(contact)", SKY_BLUE, 5.0),
+    # components hidden at start: with them the plot spans negative and positive newtons, too many unit
+    # steps for its height, and the viewer then labels only 0 on the y axis
+    "force_x_n": SeriesStyle("Fx (N)", SKY_BLUE, 1.0, visible=False),
+    "force_y_n": SeriesStyle("Fy (N)", BLUISH_GREEN, 1.0, visible=False),
+    "force_z_n": SeriesStyle("Fz (N)", ORANGE, 1.0, visible=False),
+    "contact_truth": SeriesStyle("ground truth contact (0/1)", WHITE, 1.5, step=True),
+    "posterior": SeriesStyle("HMM posterior P(contact)", SKY_BLUE, 3.0),
     "threshold": SeriesStyle("decision threshold", GREY, 1.0),
-    "predicted": SeriesStyle("predicted contact (0/1)", VERMILLION, 2.5, step=True),
+    "predicted": SeriesStyle("predicted contact (0/1)", VERMILLION, 7.0, step=True),
     "invalid_depth_fraction": SeriesStyle("invalid depth in band (fraction)", LIGHT_GREY, 1.5),
 }
 
