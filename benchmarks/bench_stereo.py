@@ -5,8 +5,8 @@
    ms per frame, for the default SGBMParams and a few variants.
 2. Speed at endoscope sizes (1280x1024 and 1920x1080; the Middlebury pair resized, so only the
    timing means something).
-3. Throughput of many frames on 2 cores: OpenCV's own threads vs 2 worker threads (what
-   `contact-viz depth` does) vs 2 processes.
+3. Throughput of many frames on 2 cores: OpenCV's own threads vs 2 worker threads vs 2
+   processes (the process timing includes starting them and sending the images).
 
 Run: .venv/bin/python benchmarks/bench_stereo.py [--repeats 5] [--frames 8]
 """
@@ -14,6 +14,7 @@ Run: .venv/bin/python benchmarks/bench_stereo.py [--repeats 5] [--frames 8]
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
@@ -63,7 +64,9 @@ def throughput(pairs, mode: str) -> float:
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(_one, pairs))
     elif mode == "2 processes, OpenCV 1 thread":
-        with ProcessPoolExecutor(2, initializer=_init_worker, initargs=(1,)) as pool:
+        # spawn: forking after OpenCV has started its thread pool can deadlock the children
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(2, mp_context=context, initializer=_init_worker, initargs=(1,)) as pool:
             list(pool.map(_one, pairs))
     cv2.setNumThreads(2)
     return 1000 * (time.perf_counter() - t0) / len(pairs)

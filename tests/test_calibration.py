@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from contact_viz.calibration import (
+    Rectification,
     read_calibration,
     read_k_txt,
     read_opencv_stereo,
@@ -86,7 +87,9 @@ def check_rectification_geometry(stereo) -> None:
     and the distances from the left camera centre must be the true ones (rectification only rotates)."""
     rect, cal = stereo.rectification, stereo.calibration
     assert rect is not None
-    points = np.array([[0.0, 0.0, 0.6], [0.05, -0.03, 0.5], [-0.06, 0.04, 0.8], [0.03, 0.05, 0.7], [-0.04, -0.05, 0.55]])
+    points = np.array(
+        [[0.0, 0.0, 0.6], [0.05, -0.03, 0.5], [-0.06, 0.04, 0.8], [0.03, 0.05, 0.7], [-0.04, -0.05, 0.55]]
+    )
     rvec = cv2.Rodrigues(R_RL)[0]
     left_px = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K1, D1)[0].reshape(-1, 2)
     right_px = cv2.projectPoints(points, rvec, T_RL_M, K2, D2)[0].reshape(-1, 2)
@@ -99,6 +102,29 @@ def check_rectification_geometry(stereo) -> None:
         y = (yl - cal.cy) * z / cal.fy
         assert np.linalg.norm([x, y, z]) == pytest.approx(np.linalg.norm(point), rel=0.01)
     assert cal.baseline_m == pytest.approx(np.linalg.norm(T_RL_M), rel=1e-9)
+
+
+def test_rectification_apply_worked_example():
+    # Maps that read each output pixel from one column to the left: a shift right by 1 px.
+    map_x = np.tile(np.arange(5, dtype=np.float32) - 1, (4, 1))
+    map_y = np.tile(np.arange(4, dtype=np.float32)[:, None], (1, 5))
+    rect = Rectification((4, 5), map_x, map_y, map_x + 0.5, map_y)
+    depth = np.arange(20, dtype=np.float32).reshape(4, 5)
+    depth[1, 1] = np.nan
+    out = rect.apply("left", depth, nearest=True)
+    expected = np.full((4, 5), np.nan, np.float32)  # column 0 reads outside the image: NaN
+    expected[:, 1:] = depth[:, :4]
+    np.testing.assert_array_equal(out, expected)
+    mask = depth > 7
+    out_mask = rect.apply("left", mask, nearest=True)
+    assert out_mask.dtype == bool
+    np.testing.assert_array_equal(out_mask[:, 1:], mask[:, :4])
+    assert not out_mask[:, 0].any()
+    # Bilinear on the right map (half a pixel): the mean of two neighbours.
+    grey = np.tile(np.array([0, 10, 20, 30, 40], np.uint8), (4, 1))
+    np.testing.assert_array_equal(rect.apply("right", grey)[:, 1:], np.tile([5, 15, 25, 35], (4, 1)))
+    with pytest.raises(ValueError, match="4x5"):
+        rect.apply("left", np.zeros((3, 5)))
 
 
 # ------------------------------------------------------------------------------------------

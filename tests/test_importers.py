@@ -147,7 +147,8 @@ def test_dvrk_import(tmp_path):
 def test_dvrk_force_topic_choice_and_errors(tmp_path):
     src = tmp_path / "rec"
     make_dvrk(src, two_force_topics=True)
-    with pytest.raises(SessionError, match=r"several.*/PSM1/body/measured_cf.*/force_sensor/measured_cf.*--force-topic"):
+    expected = r"several.*/PSM1/body/measured_cf.*/force_sensor/measured_cf.*--force-topic"
+    with pytest.raises(SessionError, match=expected):
         import_dvrk(src, tmp_path / "a")
     assert not (tmp_path / "a").exists()
     result = import_dvrk(src, tmp_path / "b", force_topic="/PSM1/body/measured_cf")

@@ -52,7 +52,8 @@ def random_dot_pair(height: int, width: int, layers, seed: int = 0):
     for i, (d, box) in enumerate(layers):
         y0, y1, x0, x1 = box if box is not None else (0, height, 0, width)
         tex = textures[i]
-        # The layer's texture is fixed in the world: left pixel x shows tex[x + pad], right pixel x shows tex[x + d + pad].
+        # The layer's texture is fixed in the world: left pixel x shows tex[x + pad],
+        # right pixel x shows tex[x + d + pad].
         left[y0:y1, x0:x1] = tex[y0:y1, x0 + pad:x1 + pad]
         disp[y0:y1, x0:x1] = d
         owner_left[y0:y1, x0:x1] = i
@@ -102,7 +103,8 @@ def test_params_validation(kwargs, match):
 def test_left_right_check_against_loop():
     rng = np.random.default_rng(3)
     height, width = 5, 17
-    disp_left = rng.integers(0, 6, (height, width)).astype(np.float32) + rng.choice([0, 0.25, 0.5, 0.75], (height, width)).astype(np.float32)
+    quarters = rng.choice([0, 0.25, 0.5, 0.75], (height, width)).astype(np.float32)
+    disp_left = rng.integers(0, 6, (height, width)).astype(np.float32) + quarters
     disp_left[rng.random((height, width)) < 0.15] = np.nan
     disp_right = disp_left + rng.normal(0, 1.0, (height, width)).astype(np.float32)
     disp_right[rng.random((height, width)) < 0.15] = np.nan

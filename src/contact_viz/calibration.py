@@ -422,7 +422,9 @@ def read_ros_camera_info(
             )
     tx = P_right[0, 3]
     if tx == 0:
-        raise SessionError(right_path, "expected the right projection_matrix Tx = -fx * baseline, found a baseline of zero")
+        raise SessionError(
+            right_path, "expected the right projection_matrix Tx = -fx * baseline, found a baseline of zero"
+        )
     if tx > 0:
         raise SessionError(
             right_path, f"expected Tx = -fx * baseline < 0 in the right projection_matrix, found {tx:g}; "

@@ -61,7 +61,8 @@ ObjectId = Annotated[Optional[int], typer.Option(help="Use only this object id o
 ContactForce = Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")]
 ParamsFile = Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields "
                        "(e.g. from recipes/grid_search.py).")]
-CacheDir = Annotated[Optional[Path], typer.Option(help="Feature cache [default: ~/.cache/contact-viz].")]
+CacheDir = Annotated[Optional[Path], typer.Option(help="Cache of features and computed depth, outside the "
+                     "sessions [default: ~/.cache/contact-viz].")]
 
 
 def _resolve_params(params_file: Optional[Path], contact_force: float):
@@ -83,6 +84,7 @@ def extract(
     object_id: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
+    cache_dir: CacheDir = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
     from .errors import SessionError
@@ -91,9 +93,10 @@ def extract(
 
     params, label_params = _resolve_params(params_file, contact_force)
     try:
-        session = open_session(session_dir, object_id=object_id, label_params=label_params)
+        session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
     except SessionError as exc:
         _fail(str(exc))
+    typer.echo(session.depth_note, err=True)
     output = output or Path("results") / session.name / "features.csv"
     if _inside(output, session.root):
         _fail(f"{output}: refusing to write inside the session directory {session.root}; choose another -o")
@@ -186,7 +189,9 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
                           f"({'; '.join(diff)}); re-extract them with the model's parameters")
                 rows, name = read_features(source), config["session"]["name"]
             else:
-                session = open_session(source, object_id=object_id, label_params=label_params)
+                session = open_session(source, object_id=object_id, label_params=label_params,
+                                       cache_dir=cache_dir)
+                typer.echo(session.depth_note, err=True)
                 name = session.name
                 with _progress() as progress:
                     task = progress.add_task(f"features {name}", total=len(session))
@@ -359,6 +364,7 @@ def view(
     object_id: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
+    cache_dir: CacheDir = None,
 ) -> None:
     """Run the pipeline frame by frame and log everything to one Rerun timeline.
 
@@ -376,9 +382,10 @@ def view(
             if params_file is not None:
                 check_params(model, params, str(params_file))
             params = model.patch_params
-        session = open_session(session_dir, object_id=object_id, label_params=label_params)
+        session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
+    typer.echo(session.depth_note, err=True)
     from .debugger import DebuggerOptions, open_recording, run_debugger
     from .pointcloud import CloudParams
     from .rerun_log import default_blueprint
@@ -430,7 +437,57 @@ def view(
             pass
 
 
-_COMMANDS = ("extract", "synth", "fit", "evaluate", "predict", "view")
+@app.command()
+def depth(
+    session_dir: Annotated[Path, typer.Argument(help="Session directory (left/ + right/ + calibration).")],
+    method: Annotated[str, typer.Option(help="Depth method: sgbm (OpenCV semi-global matching).")] = "sgbm",
+    output: Annotated[Optional[Path], typer.Option("-o", "--output", help="Also write <stem>.npy depth "
+                      "(float32 m, rectified left view) into this new folder outside the session.")] = None,
+    cache_dir: CacheDir = None,
+    workers: Annotated[int, typer.Option(min=1, help="Frames computed in parallel.")] = 2,
+) -> None:
+    """Precompute the depth of a session that has no depth/ or disparity/ (SGBM, cached outside it)."""
+    from .errors import SessionError
+    from .stereo import run_depth_command
+
+    with _progress() as progress:
+        task = progress.add_task(f"depth {session_dir.name}", total=None)
+        try:
+            lines = run_depth_command(session_dir, method=method, output=output, cache_dir=cache_dir, workers=workers,
+                                      progress=lambda done, total: progress.update(task, completed=done, total=total))
+        except (SessionError, ValueError) as exc:
+            _fail(str(exc))
+    for line in lines:
+        typer.echo(line)
+
+
+@app.command("import")
+def import_(
+    kind: Annotated[str, typer.Argument(help="Source layout: dvrk or yang2024.")],
+    src: Annotated[Path, typer.Argument(help="The recorder's folder (never modified).")],
+    out_session: Annotated[Path, typer.Argument(help="New session directory to create (new or empty).")],
+    force_topic: Annotated[Optional[str], typer.Option(help="dvrk: force topic (e.g. /force_sensor/measured_cf) "
+                           "when several topic CSVs have force columns.")] = None,
+    video: Annotated[Optional[str], typer.Option(help="dvrk: video name when frames of several videos are "
+                     "present.")] = None,
+    calibration: Annotated[Optional[list[Path]], typer.Option(help="Calibration file to put in the session "
+                           "(K.txt, left.yaml + right.yaml, stereo.yaml ...); repeat for several.")] = None,
+    copy: Annotated[bool, typer.Option(help="Copy the images instead of linking them.")] = False,
+) -> None:
+    """Convert a recorder's output (dVRK data_collection, Yang et al. 2024) into a session."""
+    from .errors import SessionError
+    from .importers import run_import_command
+
+    try:
+        lines = run_import_command(kind, src, out_session, force_topic=force_topic, video=video,
+                                   calibration=calibration or (), copy=copy)
+    except (SessionError, ValueError) as exc:
+        _fail(str(exc))
+    for line in lines:
+        typer.echo(line)
+
+
+_COMMANDS = ("extract", "synth", "fit", "evaluate", "predict", "view", "depth", "import")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -245,7 +245,8 @@ class _ImageReader:
         """(jpeg bytes, raw rgb, colour image) of one image; raises SessionError on a problem."""
         height, width = self.session.image_size
         opts = self.options
-        if not opts.raw_images and path.suffix.lower() in JPEG_SUFFIXES:
+        rectification = self.session.rectification
+        if not opts.raw_images and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
             try:
                 data = path.read_bytes()
             except OSError as exc:
@@ -264,6 +265,11 @@ class _ImageReader:
                 colors = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             return data, None, colors
         rgb = read_rgb(path)
+        if rectification is not None:  # raw recordings: show the rectified view the depth belongs to
+            try:
+                rgb = rectification.apply(side, rgb)
+            except ValueError as exc:
+                raise SessionError(path, str(exc)) from exc
         if rgb.shape[:2] != (height, width):
             raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                      f"found {rgb.shape[0]}x{rgb.shape[1]}")

@@ -178,7 +178,8 @@ def cached_features(
     """
     from .cache import cache_path
 
-    key = {"patch_params": to_dict(params), "label_params": to_dict(label_params), "object_id": session.object_id}
+    key = {"patch_params": to_dict(params), "label_params": to_dict(label_params), "object_id": session.object_id,
+           "depth": session.depth_config}
     path = cache_path(session.root, "features", key, ".csv", cache_dir)
     if path.exists():
         return read_features(path), True

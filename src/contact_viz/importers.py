@@ -272,7 +272,10 @@ def _find_dvrk_folder(src: Path) -> Path:
     )
 
 
-def _dvrk_frames(folder: Path, video: str | None, notes: list[str]) -> tuple[str, list[tuple[Decimal, str, Path, Path | None]]]:
+_DvrkFrame = tuple[Decimal, str, Path, Path | None]  # (time s, time text, left file, right file or None)
+
+
+def _dvrk_frames(folder: Path, video: str | None, notes: list[str]) -> tuple[str, list[_DvrkFrame]]:
     """(video, [(time, time text, left file, right file or None)] sorted by time)."""
     by_video: dict[str, dict[str, dict[str, Path]]] = {}
     for path in folder.iterdir():
@@ -281,7 +284,9 @@ def _dvrk_frames(folder: Path, video: str | None, notes: list[str]) -> tuple[str
             sides = by_video.setdefault(match["video"], {}).setdefault(match["t"], {})
             side = match["side"].lower()
             if side in sides:
-                raise SessionError(folder, f"expected one {side} image per time, found {sides[side].name} and {path.name}")
+                raise SessionError(
+                    folder, f"expected one {side} image per time, found {sides[side].name} and {path.name}"
+                )
             sides[side] = path
     stereo_videos = sorted(v for v, times in by_video.items() if any("left" in s for s in times.values()))
     if video is None:
@@ -311,7 +316,11 @@ def _dvrk_frames(folder: Path, video: str | None, notes: list[str]) -> tuple[str
     return video, frames
 
 
-def _choose_force_topic(topics: list[_TopicCsv], force_topic: str | None, folder: Path) -> tuple[_TopicCsv, tuple] | None:
+def _choose_force_topic(
+    topics: list[_TopicCsv], force_topic: str | None, folder: Path
+) -> tuple[_TopicCsv, tuple[str, str, str]] | None:
+    """The force topic CSV and its x, y, z columns: ``force_topic`` if given, else the only one; None if none."""
+
     def columns(info: _TopicCsv):
         return next((cols for cols in FORCE_COLUMNS if all(c in info.header for c in cols)), None)
 
@@ -355,9 +364,13 @@ def _read_force(info: _TopicCsv, cols: tuple[str, str, str]) -> list[tuple[str, 
             try:
                 value = float(row[col]) if row[col] != "" else math.nan
             except ValueError:
-                raise SessionError(info.path, f"line {line}: expected a number (N) in {col!r}, found {row[col]!r}") from None
+                raise SessionError(
+                    info.path, f"line {line}: expected a number (N) in {col!r}, found {row[col]!r}"
+                ) from None
             if math.isinf(value):
-                raise SessionError(info.path, f"line {line}: expected a finite number (N) in {col!r}, found {row[col]!r}")
+                raise SessionError(
+                    info.path, f"line {line}: expected a finite number (N) in {col!r}, found {row[col]!r}"
+                )
             values.append(repr(value) if math.isfinite(value) else "nan")
         rows.append((_ns_to_seconds_text(ns), *values))
     return rows
@@ -454,8 +467,8 @@ def import_dvrk(
             calib_names = _camera_info_calibration(topics, tmp, notes)
         if calib_names:
             read_calibration(tmp, _image_size(frames[0][2]))  # fail now, with the file named, if it is wrong
-        _write_session_json(tmp / "session.json", out_path.name, "dvrk", folder,
-                            [float(f[0]) for f in frames], {"video": video, "force_topic": chosen[0].topic if chosen else None})
+        extra = {"video": video, "force_topic": chosen[0].topic if chosen else None}
+        _write_session_json(tmp / "session.json", out_path.name, "dvrk", folder, [float(f[0]) for f in frames], extra)
     out_path = out_path.expanduser().resolve()
     return ImportResult("dvrk", folder, out_path, len(frames), placed, len(force_rows), notes, missing_inputs(out_path))
 
@@ -583,7 +596,9 @@ def import_yang2024(
             read_calibration(tmp, _image_size(left[numbers[0]]))
         _write_session_json(tmp / "session.json", out_path.name, "yang2024", src, times, {})
     out_path = out_path.expanduser().resolve()
-    return ImportResult("yang2024", src, out_path, len(numbers), placed, len(force_rows), notes, missing_inputs(out_path))
+    return ImportResult(
+        "yang2024", src, out_path, len(numbers), placed, len(force_rows), notes, missing_inputs(out_path)
+    )
 
 
 # --------------------------------------------------------------------------------------------

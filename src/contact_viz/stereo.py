@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import os
 import time
 import warnings
@@ -48,8 +47,6 @@ __all__ = [
     "run_depth_command",
     "sgbm_disparity",
 ]
-
-log = logging.getLogger(__name__)
 
 DEPTH_METHODS = ("sgbm",)  # methods `contact-viz depth` can compute
 SUBPIXEL = 16  # StereoSGBM returns disparities in 1/16 px fixed point
