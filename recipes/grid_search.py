@@ -32,6 +32,10 @@ from contact_viz.patch import distance_signal, patch_distance_grid
 from contact_viz.session import BadFrame, open_session
 
 
+# The default grid: N1 and N2 window sides (px), tau_tool (pixels) and tau_patch (distances).
+DEFAULT_GRID = ((29, 31, 37), (11, 17, 23), (15, 30, 60), (4, 8, 16))
+
+
 def ints(text: str) -> list[int]:
     return [int(v) for v in text.split(",")]
 
@@ -85,10 +89,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sessions", type=Path, nargs="+", help="training session directories (K >= 2)")
     parser.add_argument("-o", "--output", type=Path, default=Path("best_params.json"))
-    parser.add_argument("--n1", type=ints, default=[29, 31, 37], help="N1 window sides, px")
-    parser.add_argument("--n2", type=ints, default=[11, 17, 23], help="N2 window sides, px")
-    parser.add_argument("--tau-tool", type=ints, default=[15, 30, 60], help="tau_tool values, pixels")
-    parser.add_argument("--tau-patch", type=ints, default=[4, 8, 16], help="tau_patch values, distances")
+    n1s, n2s, tau_tools, tau_patches = (list(values) for values in DEFAULT_GRID)
+    parser.add_argument("--n1", type=ints, default=n1s, help="N1 window sides, px")
+    parser.add_argument("--n2", type=ints, default=n2s, help="N2 window sides, px")
+    parser.add_argument("--tau-tool", type=ints, default=tau_tools, help="tau_tool values, pixels")
+    parser.add_argument("--tau-patch", type=ints, default=tau_patches, help="tau_patch values, distances")
     parser.add_argument("--cache-dir", type=Path, default=None)
     args = parser.parse_args()
     if len(args.sessions) < 2:

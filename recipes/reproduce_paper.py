@@ -73,13 +73,15 @@ from contact_viz.params import LabelParams, PatchParams, from_dict, to_dict
 from contact_viz.session import BadFrame, Session, open_session
 
 RECIPES_DIR = Path(__file__).resolve().parent
+sys.path.insert(0, str(RECIPES_DIR))  # recipes/ is not a package
+import grid_search  # noqa: E402  (the grid search step and its default grid)
 CATEGORIES = ("same phantom and task", "new phantom", "new phantom and task")  # test session categories
 PHANTOM_CATEGORY = {"cup": CATEGORIES[0], "kidney": CATEGORIES[1], "liver": CATEGORIES[1], "glove": CATEGORIES[2]}
 TEST_SEED_BASE = 100  # synthetic test seeds: 100 + index of the phantom in synth.PHANTOMS (training: 0..K-1)
 HMM_METHOD = "HMM"
 SPLIT_FILE = "split.json"  # name of the split file written beside a generated synthetic study
 DEFAULT_OUTPUT = Path("results/paper")
-PAPER_GRID = ((29, 31, 37), (11, 17, 23), (15, 30, 60), (4, 8, 16))  # n1, n2, tau_tool, tau_patch (grid_search.py's)
+PAPER_GRID = grid_search.DEFAULT_GRID  # n1, n2, tau_tool, tau_patch
 
 
 @dataclass(frozen=True)
@@ -210,9 +212,6 @@ def synthetic_study(directory: Path, profile: StudyProfile) -> tuple[Path, Path,
 def run_grid_search(train_dirs: Sequence[Path], grid_values, cache_dir: Path | None,
                     out: Path) -> tuple[PatchParams, dict]:
     """recipes/grid_search.py's protocol on the training sessions; writes grid_search.json; returns the best params."""
-    if str(RECIPES_DIR) not in sys.path:
-        sys.path.insert(0, str(RECIPES_DIR))  # recipes/ is not a package
-    import grid_search
     from contact_viz.patch import distance_signal
     from rich.progress import Progress
 

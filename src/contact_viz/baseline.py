@@ -380,7 +380,7 @@ def prepare_batch(crops: np.ndarray, device: torch.device, augmentation: torch.n
     """
     import torch
 
-    batch = torch.from_numpy(np.ascontiguousarray(crops)).to(device)
+    batch = torch.from_numpy(np.array(crops)).to(device)  # a writable copy (crops may be a read-only memmap)
     x = batch.permute(0, 3, 1, 2).float().div_(PIXEL_MAX)
     if augmentation is not None:
         return augmentation(x)

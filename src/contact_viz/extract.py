@@ -11,8 +11,11 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import warnings
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +28,7 @@ from .patch import PatchResult, compute_patch
 from .session import BadFrame, Frame, Session
 
 REASON_BAD_FRAME = "bad_frame"
+DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # frames whose patches are computed at once (threads)
 
 # Columns of features.csv, in order. Units are in the names; see the README for each.
 FEATURE_COLUMNS = (
@@ -56,21 +60,46 @@ def iter_frame_results(
     *,
     layers: Sequence[str] = ("mask", "depth"),
     indices: Sequence[int] | None = None,
+    workers: int = DEFAULT_WORKERS,
 ) -> Iterator[FrameResult]:
-    """Decode and process the frames of ``session`` one at a time, in order.
+    """Decode and process the frames of ``session`` in order, streaming.
 
-    A frame that cannot be read is yielded with ``patch=None`` and a :class:`BadFrameWarning`
-    is issued; the iteration goes on. ``layers`` must include "mask" and "depth".
+    Decoding runs in the session reader's background thread; the patches of up to ``workers``
+    frames are computed at once in a thread pool (OpenCV and NumPy release the GIL), at most
+    ``2 * workers`` frames ahead of the consumer, so memory stays bounded. A frame that cannot
+    be read is yielded with ``patch=None`` and a :class:`BadFrameWarning` is issued; the
+    iteration goes on. ``layers`` must include "mask" and "depth".
     """
     needed = {"mask", "depth"}
     if not needed <= set(layers):
         raise ValueError(f"layers must include {sorted(needed)}, got {list(layers)}")
-    for item in session.iter_frames(layers=tuple(layers), indices=indices):
-        if isinstance(item, BadFrame):
-            warnings.warn(f"frame {item.stem} skipped: {item.reason}", BadFrameWarning, stacklevel=2)
-            yield FrameResult(item, None)
-        else:
-            yield FrameResult(item, compute_patch(item.depth_m, item.tool_mask, params))
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    frames = session.iter_frames(layers=tuple(layers), indices=indices, prefetch=2 * workers + 2)
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="contact-viz-patch")
+    pending: deque[tuple[Frame | BadFrame, Future | None]] = deque()
+
+    def finish(item: Frame | BadFrame, future: Future | None) -> FrameResult:
+        if future is None:
+            warnings.warn(f"frame {item.stem} skipped: {item.reason}", BadFrameWarning, stacklevel=3)
+            return FrameResult(item, None)
+        return FrameResult(item, future.result())
+
+    try:
+        for item in frames:
+            future = None if isinstance(item, BadFrame) else pool.submit(
+                compute_patch, item.depth_m, item.tool_mask, params)
+            pending.append((item, future))
+            if len(pending) >= 2 * workers:
+                yield finish(*pending.popleft())
+        while pending:
+            yield finish(*pending.popleft())
+    finally:
+        for _, future in pending:
+            if future is not None:
+                future.cancel()
+        pool.shutdown(wait=True, cancel_futures=True)
+        frames.close()
 
 
 def _blank(value: float) -> float | str:

@@ -32,6 +32,7 @@ whole frame), with integral images gathered only at band pixels.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -150,6 +151,14 @@ def _check_inputs(depth_m: np.ndarray, tool_mask: np.ndarray) -> None:
         raise ValueError(f"tool_mask shape {tool_mask.shape} differs from depth_m shape {depth_m.shape}")
 
 
+@functools.lru_cache(maxsize=64)
+def _disc(radius_px: float) -> np.ndarray:
+    """Structuring element of the pixel offsets (dy, dx) with sqrt(dy^2 + dx^2) <= radius_px, uint8."""
+    r = int(np.floor(radius_px))
+    dy, dx = np.mgrid[-r:r + 1, -r:r + 1]
+    return (np.sqrt(dy * dy + dx * dx) <= radius_px).astype(np.uint8)
+
+
 def _box_sums(integral: np.ndarray, ys: np.ndarray, xs: np.ndarray, half: int) -> np.ndarray:
     """Sums over the (2*half+1)^2 windows centred at (ys, xs), clipped to the array.
 
@@ -224,16 +233,19 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
         layer_ids[y0:y1, x0:x1] = LAYER_INTERIOR
         return _empty_result(shape, REASON_NO_BAND, layer_ids)
 
+    # The visible shaft width needs the largest inscribed disc: one exact distance transform.
     dist_in = cv2.distanceTransform(tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # tool px -> background
-    dist_out = cv2.distanceTransform(1 - tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # background px -> tool
     shaft_width = float(2.0 * dist_in.max() - 1.0)
     band_w = band_width_px(shaft_width, params)
-
-    interior_c = dist_in > params.erosion_px
-    band_c = (dist_out > params.ring_px) & (dist_out <= params.ring_px + band_w)
+    # Thresholds of the Euclidean distance to the mask edge are morphology with exact discs:
+    # erosion keeps tool pixels with no background within erosion_px (outside the image is not
+    # background: erode's default border), dilation adds background within a radius of the tool.
+    interior_c = cv2.erode(tool_u8, _disc(params.erosion_px)).view(np.bool_)
+    near_c = cv2.dilate(tool_u8, _disc(params.ring_px)).view(np.bool_)  # tool + excluded ring outside it
+    band_c = cv2.dilate(tool_u8, _disc(params.ring_px + band_w)).view(np.bool_) & ~near_c
+    layer_c[near_c] = LAYER_RING
     layer_c[tool_c] = LAYER_TOOL_EDGE
     layer_c[interior_c] = LAYER_INTERIOR
-    layer_c[~tool_c & (dist_out <= params.ring_px)] = LAYER_RING
     layer_c[band_c] = LAYER_BAND
     layer_ids[y0:y1, x0:x1] = layer_c
 
