@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contact_viz.extract import FEATURE_COLUMNS, REASON_BAD_FRAME, extract_features, iter_frame_results
+from contact_viz.extract import (FEATURE_COLUMNS, REASON_BAD_FRAME, BadFrameWarning, extract_features,
+                                 iter_frame_results)
 from contact_viz.params import PatchParams
 from contact_viz.patch import compute_patch
 from contact_viz.session import open_session
@@ -97,7 +98,8 @@ def test_bad_frame_is_skipped_with_warning_and_run_goes_on(cup_session, tmp_path
     assert any(stems[5] in m and "depth" in m for m in messages)
     assert any(stems[7] in m and "mask" in m for m in messages)
     assert [r.patch is None for r in results] == [False, True, False, True, False, False]
-    rows = extract_features(session, indices=range(4, 10))
+    with pytest.warns(BadFrameWarning):
+        rows = extract_features(session, indices=range(4, 10))
     assert [r["reason"] == REASON_BAD_FRAME for r in rows] == [False, True, False, True, False, False]
     assert stems[5] in rows[1]["detail"]
 

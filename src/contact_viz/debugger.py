@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -185,7 +186,14 @@ def open_recording(
             raise ValueError(f"save: directory {str(save.parent)!r} does not exist")
         sinks.append(rr.FileSink(save))
     if spawn:
-        rr.spawn(port=grpc_port, connect=False, hide_welcome_screen=True)
+        # The viewer binary ships with rerun-sdk beside this interpreter; PATH may not include it.
+        beside = Path(sys.executable).with_name("rerun")
+        try:
+            rr.spawn(port=grpc_port, connect=False, hide_welcome_screen=True, recording=rec,
+                     executable_path=str(beside) if beside.exists() else None)
+        except RuntimeError as exc:
+            raise ValueError(f"spawn: could not start the Rerun viewer ({str(exc).splitlines()[0]}); "
+                             "use --save out.rrd instead") from None
         grpc_url = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
         sinks.append(rr.GrpcSink(grpc_url))
     if connect is not None:
