@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from itertools import product
 from pathlib import Path
 
@@ -85,6 +86,38 @@ def loso_scores(signals: list[np.ndarray], labels: list[np.ndarray], names: list
     return float(f1_score(y, p >= ensemble.threshold_)), float(average_precision_score(y, p))
 
 
+@dataclass(frozen=True)
+class GridPoint:
+    """One scored grid point."""
+
+    params: PatchParams
+    oof_f1: float  # pooled out-of-fold F1 at the protocol's threshold
+    oof_auprc: float  # pooled out-of-fold average precision
+    found: float  # mean share of frames with a patch
+
+
+def score_grid(sessions: list[Path], grid: list[PatchParams], cache_dir, on_skip=print) -> list[GridPoint]:
+    """Every grid point scored on the training ``sessions``, best first (F1, then AUPRC)."""
+    with Progress(transient=True) as progress:
+        per_session = [session_distances(s, grid, cache_dir, progress) for s in sessions]
+    names = [name for name, _, _ in per_session]
+    labels = [y.astype(np.int8) for _, _, y in per_session]
+    results = []
+    for g, params in enumerate(grid):
+        signals = [distance_signal(d[:, g], params.eps_m) for _, d, _ in per_session]
+        try:
+            f1, auprc = loso_scores(signals, labels, names)
+        except ValueError as exc:
+            on_skip(f"n1={params.n1} n2={params.n2} tau_tool={params.tau_tool} tau_patch={params.tau_patch} "
+                    f"not scored: {exc}")
+            continue
+        results.append(GridPoint(params, f1, auprc, float(np.mean([np.isfinite(x).mean() for x in signals]))))
+    if not results:
+        raise ValueError("grid search: no grid point could be scored on the training sessions")
+    results.sort(key=lambda r: (-r.oof_f1, -r.oof_auprc))
+    return results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sessions", type=Path, nargs="+", help="training session directories (K >= 2)")
@@ -99,42 +132,30 @@ def main() -> None:
     if len(args.sessions) < 2:
         parser.error("leave-one-session-out needs at least 2 training sessions")
 
-    base = PatchParams()
-    grid, skipped = build_grid(args.n1, args.n2, args.tau_tool, args.tau_patch, base)
+    grid, skipped = build_grid(args.n1, args.n2, args.tau_tool, args.tau_patch, PatchParams())
     for note in skipped:
         print(f"skipped: {note}")
-    with Progress() as progress:
-        per_session = [session_distances(s, grid, args.cache_dir, progress) for s in args.sessions]
-    names = [name for name, _, _ in per_session]
-    labels = [y.astype(np.int8) for _, _, y in per_session]
-
-    results = []
-    for g, params in enumerate(grid):
-        signals = [distance_signal(d[:, g], params.eps_m) for _, d, _ in per_session]
-        try:
-            f1, auprc = loso_scores(signals, labels, names)
-        except ValueError as exc:
-            print(f"n1={params.n1} n2={params.n2} tau_tool={params.tau_tool} tau_patch={params.tau_patch}: {exc}")
-            continue
-        found = float(np.mean([np.isfinite(s).mean() for s in signals]))
-        results.append((f1, auprc, found, params))
-    if not results:
-        raise SystemExit("no grid point could be scored")
-    results.sort(key=lambda r: (-r[0], -r[1]))
+    try:
+        results = score_grid(args.sessions, grid, args.cache_dir)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
 
     print(f"\n{'N1':>4} {'N2':>4} {'tau_tool':>8} {'tau_patch':>9} {'OOF F1':>8} {'OOF AUPRC':>10} {'found':>6}")
-    for f1, auprc, found, p in results:
-        print(f"{p.n1:>4} {p.n2:>4} {p.tau_tool:>8} {p.tau_patch:>9} {f1:>8.4f} {auprc:>10.4f} {found:>6.1%}")
-    f1, auprc, _, best = results[0]
+    for r in results:
+        p = r.params
+        print(f"{p.n1:>4} {p.n2:>4} {p.tau_tool:>8} {p.tau_patch:>9} {r.oof_f1:>8.4f} {r.oof_auprc:>10.4f} "
+              f"{r.found:>6.1%}")
+    best = results[0]
     with atomic_write(args.output) as handle:
-        json.dump({"patch_params": to_dict(best), "grid_search": {
+        json.dump({"patch_params": to_dict(best.params), "grid_search": {
             "contact_viz_version": __version__, "sessions": [str(s.resolve()) for s in args.sessions],
             "score": "pooled out-of-fold F1 of the LOSO HMM ensemble, AUPRC as tie-breaker",
-            "best_oof_f1": f1, "best_oof_auprc": auprc, "grid_points": len(grid),
+            "best_oof_f1": best.oof_f1, "best_oof_auprc": best.oof_auprc, "grid_points": len(grid),
             "n1": args.n1, "n2": args.n2, "tau_tool": args.tau_tool, "tau_patch": args.tau_patch}}, handle, indent=2)
         handle.write("\n")
-    print(f"\nbest: n1={best.n1} n2={best.n2} tau_tool={best.tau_tool} tau_patch={best.tau_patch} "
-          f"(OOF F1 {f1:.4f}, AUPRC {auprc:.4f}) -> {args.output}")
+    p = best.params
+    print(f"\nbest: n1={p.n1} n2={p.n2} tau_tool={p.tau_tool} tau_patch={p.tau_patch} "
+          f"(OOF F1 {best.oof_f1:.4f}, AUPRC {best.oof_auprc:.4f}) -> {args.output}")
 
 
 if __name__ == "__main__":

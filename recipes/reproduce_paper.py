@@ -212,30 +212,12 @@ def synthetic_study(directory: Path, profile: StudyProfile) -> tuple[Path, Path,
 def run_grid_search(train_dirs: Sequence[Path], grid_values, cache_dir: Path | None,
                     out: Path) -> tuple[PatchParams, dict]:
     """recipes/grid_search.py's protocol on the training sessions; writes grid_search.json; returns the best params."""
-    from contact_viz.patch import distance_signal
-    from rich.progress import Progress
-
     grid, skipped = grid_search.build_grid(*grid_values, base=PatchParams())
     for note in skipped:
         log(f"  grid point skipped: {note}")
-    with Progress(transient=True) as progress:
-        per_session = [grid_search.session_distances(d, grid, cache_dir, progress) for d in train_dirs]
-    names = [name for name, _, _ in per_session]
-    labels = [y.astype(np.int8) for _, _, y in per_session]
-    scored = []
-    for g, params in enumerate(grid):
-        signals = [distance_signal(d[:, g], params.eps_m) for _, d, _ in per_session]
-        try:
-            f1, auprc = grid_search.loso_scores(signals, labels, names)
-        except ValueError as exc:
-            log(f"  grid point n1={params.n1} n2={params.n2} tau_tool={params.tau_tool} "
-                f"tau_patch={params.tau_patch} not scored: {exc}")
-            continue
-        scored.append({"patch_params": to_dict(params), "oof_f1": f1, "oof_auprc": auprc})
-    if not scored:
-        raise ValueError("grid search: no grid point could be scored on the training sessions")
-    scored.sort(key=lambda r: (-r["oof_f1"], -r["oof_auprc"]))
-    best = from_dict(PatchParams, scored[0]["patch_params"])
+    points = grid_search.score_grid(list(train_dirs), grid, cache_dir, on_skip=lambda note: log(f"  grid point {note}"))
+    scored = [{"patch_params": to_dict(r.params), "oof_f1": r.oof_f1, "oof_auprc": r.oof_auprc} for r in points]
+    best = points[0].params
     result = {"score": "pooled out-of-fold F1 of the LOSO HMM ensemble, AUPRC as tie-breaker",
               "grid": dict(zip(("n1", "n2", "tau_tool", "tau_patch"), (list(v) for v in grid_values))),
               "best": scored[0], "points": scored}

@@ -589,6 +589,25 @@ def _invalid_to_nan(depth_m: np.ndarray) -> np.ndarray:
     return depth_m
 
 
+def _load_float_npy(path: Path, what: str) -> np.ndarray:
+    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``."""
+    try:
+        raw = np.load(path, allow_pickle=False)
+    except FileNotFoundError as exc:
+        raise SessionError(path, f"expected {what}, file missing") from exc
+    except _DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
+    is_float = isinstance(raw, np.ndarray) and raw.dtype.kind == "f" and raw.dtype.itemsize in (4, 8)
+    if not is_float or raw.ndim != 2:
+        shape = getattr(raw, "shape", None)
+        dtype = getattr(raw, "dtype", type(raw).__name__)
+        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+    array = raw.astype(np.float32, copy=False)
+    if not array.flags.writeable or not array.flags.c_contiguous:
+        array = np.ascontiguousarray(array).copy()
+    return array
+
+
 def read_depth_m(path: Path) -> np.ndarray:
     """Decode a depth file to (H, W) float32 metres, NaN where invalid (0, NaN, inf or negative).
 
@@ -597,22 +616,7 @@ def read_depth_m(path: Path) -> np.ndarray:
     """
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        what = "a 2-D float32 depth array in metres (.npy)"
-        try:
-            raw = np.load(path, allow_pickle=False)
-        except FileNotFoundError as exc:
-            raise SessionError(path, f"expected {what}, file missing") from exc
-        except _DECODE_ERRORS as exc:
-            raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
-        is_float = isinstance(raw, np.ndarray) and raw.dtype.kind == "f" and raw.dtype.itemsize in (4, 8)
-        if not is_float or raw.ndim != 2:
-            shape = getattr(raw, "shape", None)
-            dtype = getattr(raw, "dtype", type(raw).__name__)
-            raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
-        depth = raw.astype(np.float32, copy=False)
-        if not depth.flags.writeable or not depth.flags.c_contiguous:
-            depth = np.ascontiguousarray(depth).copy()
-        return _invalid_to_nan(depth)
+        return _invalid_to_nan(_load_float_npy(path, "a 2-D float32 depth array in metres (.npy)"))
     if suffix == ".png":
         what = "a 16-bit single-channel depth PNG in millimetres"
         data = _read_bytes(path, what)
@@ -638,19 +642,7 @@ def read_disparity_px(path: Path) -> np.ndarray:
 
     NaN where the disparity is not a finite positive number.
     """
-    what = "a 2-D float32 disparity array in pixels (.npy)"
-    try:
-        raw = np.load(path, allow_pickle=False)
-    except FileNotFoundError as exc:
-        raise SessionError(path, f"expected {what}, file missing") from exc
-    except _DECODE_ERRORS as exc:
-        raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
-    is_float = isinstance(raw, np.ndarray) and raw.dtype.kind == "f" and raw.dtype.itemsize in (4, 8)
-    if not is_float or raw.ndim != 2:
-        shape = getattr(raw, "shape", None)
-        dtype = getattr(raw, "dtype", type(raw).__name__)
-        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
-    return _invalid_to_nan(np.array(raw, dtype=np.float32))
+    return _invalid_to_nan(_load_float_npy(path, "a 2-D float32 disparity array in pixels (.npy)"))
 
 
 _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.10 decodes straight to RGB
