@@ -28,7 +28,8 @@ from pathlib import Path
 CHILD = r"""
 import json, resource, sys, time, warnings
 t_start = time.perf_counter()
-from contact_viz.debugger import DebuggerOptions, open_recording, run_debugger
+from contact_viz.debugger import DebuggerOptions, run_debugger
+from contact_viz.rerun_log import open_recording
 from contact_viz.rerun_log import default_blueprint
 from contact_viz.session import open_session
 warnings.simplefilter("ignore")

@@ -20,7 +20,8 @@ rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
 from contact_viz import rerun_log  # noqa: E402
-from contact_viz.debugger import DebuggerOptions, open_recording, run_debugger, select_frames  # noqa: E402
+from contact_viz.debugger import DebuggerOptions, run_debugger, select_frames  # noqa: E402
+from contact_viz.rerun_log import open_recording  # noqa: E402
 from contact_viz.diagnostics import DIAGNOSTIC_CODES, DiagnosticParams, DiagnosticsTracker  # noqa: E402
 from contact_viz.extract import BadFrameWarning  # noqa: E402
 from contact_viz.hmm import LosoEnsemble  # noqa: E402
@@ -414,7 +415,8 @@ def test_killed_process_leaves_what_was_flushed(session_dir, tmp_path):
     script = textwrap.dedent(f"""
         import os, signal, warnings
         warnings.simplefilter("ignore")
-        from contact_viz.debugger import DebuggerOptions, open_recording, run_debugger
+        from contact_viz.debugger import DebuggerOptions, run_debugger
+        from contact_viz.rerun_log import open_recording
         from contact_viz.session import open_session
         def kill(done, total):
             if done == 6:

@@ -386,9 +386,9 @@ def view(
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
-    from .debugger import DebuggerOptions, open_recording, run_debugger
+    from .debugger import DebuggerOptions, run_debugger
     from .pointcloud import CloudParams
-    from .rerun_log import default_blueprint
+    from .rerun_log import default_blueprint, open_recording
 
     if spawn is None:
         spawn = _has_display() and save is None and not serve and connect is None

@@ -5,7 +5,7 @@
 every distance, signal and bad frame is the one the features file has), prepares what each
 frame shows (point cloud, patch geometry, decimated depth, causal HMM posterior, diagnostics) and
 hands it to :mod:`contact_viz.rerun_log`. Nothing is collected across frames: memory stays flat
-however long the session is. :func:`open_recording` makes the ``rr.RecordingStream`` with the
+however long the session is. :func:`contact_viz.rerun_log.open_recording` makes the ``rr.RecordingStream`` with the
 chosen sinks (an .rrd file, a viewer to spawn or connect to, or a served web viewer).
 
 Images. The left and right images are read by a second background thread (not by the session
@@ -21,18 +21,15 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from urllib.parse import quote
 
 import cv2
 import numpy as np
-import rerun as rr
 
 from contact_viz import rerun_log
 from contact_viz.diagnostics import DiagnosticParams, DiagnosticsTracker
@@ -57,8 +54,6 @@ JPEG_SOI = b"\xff\xd8\xff"  # every JPEG file starts with these bytes
 # cv2 flags decoding a JPEG at 1/n size (libjpeg DCT scaling: much faster than a full decode)
 _REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
                   8: cv2.IMREAD_REDUCED_COLOR_8}
-DEFAULT_GRPC_PORT = 9876  # Rerun's default gRPC port
-DEFAULT_WEB_PORT = 9090  # Rerun's default web viewer port
 
 
 @dataclass(frozen=True)
@@ -145,70 +140,6 @@ def select_frames(n_frames: int, start: int = 0, end: int | None = None, stride:
 # --------------------------------------------------------------------------------------------
 # Recording sinks
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class OpenedRecording:
-    """A recording stream and where it goes."""
-
-    rec: rr.RecordingStream
-    web_viewer_url: str | None  # with serve: open this in a browser (keep the process alive)
-    grpc_url: str | None  # with serve or spawn: the gRPC address viewers connect to
-
-
-def open_recording(
-    *,
-    save: str | Path | None = None,
-    connect: str | None = None,
-    spawn: bool = False,
-    serve: bool = False,
-    grpc_port: int = DEFAULT_GRPC_PORT,
-    web_port: int = DEFAULT_WEB_PORT,
-    blueprint=None,
-    recording_id: str | None = None,
-) -> OpenedRecording:
-    """A ``rr.RecordingStream`` that writes to every chosen sink (at least one).
-
-    save: an .rrd file (overwritten; readable up to the last flush if the run is interrupted).
-    connect: the gRPC URL of a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
-    spawn: start a native viewer (needs a display) on ``grpc_port`` and stream to it.
-    serve: host a gRPC server on ``grpc_port`` and a web viewer on ``web_port`` in this process.
-    ``blueprint`` (default: none) is sent to every sink as the default layout.
-    """
-    rec = rr.RecordingStream(rerun_log.APPLICATION_ID, recording_id=recording_id)
-    sinks = []
-    web_url = grpc_url = None
-    if save is not None:
-        save = Path(save)
-        if save.suffix != ".rrd":
-            raise ValueError(f"save: expected a path ending in .rrd, got {str(save)!r}")
-        if not save.parent.is_dir():
-            raise ValueError(f"save: directory {str(save.parent)!r} does not exist")
-        sinks.append(rr.FileSink(save))
-    if spawn:
-        # The viewer binary ships with rerun-sdk beside this interpreter; PATH may not include it.
-        beside = Path(sys.executable).with_name("rerun")
-        try:
-            rr.spawn(port=grpc_port, connect=False, hide_welcome_screen=True, recording=rec,
-                     executable_path=str(beside) if beside.exists() else None)
-        except RuntimeError as exc:
-            raise ValueError(f"spawn: could not start the Rerun viewer ({str(exc).splitlines()[0]}); "
-                             "use --save out.rrd instead") from None
-        grpc_url = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
-        sinks.append(rr.GrpcSink(grpc_url))
-    if connect is not None:
-        sinks.append(rr.GrpcSink(connect))
-    if serve:
-        server = rr.GrpcServerSink(port=grpc_port)
-        sinks.append(server)
-        grpc_url = server.uri.replace("0.0.0.0", "127.0.0.1")  # the server binds every interface
-    if not sinks:
-        raise ValueError("open_recording: choose at least one sink (save, connect, spawn or serve)")
-    rec.set_sinks(*sinks, default_blueprint=blueprint)
-    if serve:
-        rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
-        web_url = f"http://localhost:{web_port}/?url={quote(grpc_url, safe='')}"
-    return OpenedRecording(rec=rec, web_viewer_url=web_url, grpc_url=grpc_url)
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,7 +269,7 @@ def _prefetched(load: Callable[[int], _Images], indices: Sequence[int], ahead: i
 
 def run_debugger(
     session: Session,
-    rec: rr.RecordingStream,
+    rec: rerun_log.RecordingStream,
     options: DebuggerOptions = DebuggerOptions(),
     model=None,
     progress: Callable[[int, int], None] | None = None,
