@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import math
 import shutil
 import subprocess
@@ -225,6 +227,10 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
         [BASELINE_M, 0, 0])
     for entity in (rerun_log.ENTITY_SERIES_DISTANCE, rerun_log.ENTITY_SERIES_TRUTH):
         assert (entity, "SeriesLines:colors") in rec.static
+    # the resolved configuration travels with the recording
+    config_text = rec.static[(rerun_log.ENTITY_CONFIG, "TextDocument:text")].as_py()[0]
+    config = json.loads(config_text.split("```json\n", 1)[1].rsplit("\n```", 1)[0])
+    assert config["options"]["patch_params"]["n1"] == 31 and config["session"]["frames"] == len(session)
 
 
 def test_images_pass_through_and_layers_depth_patch_match_extract(default_run, session_dir):

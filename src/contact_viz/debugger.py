@@ -267,6 +267,24 @@ def _prefetched(load: Callable[[int], _Images], indices: Sequence[int], ahead: i
 # --------------------------------------------------------------------------------------------
 
 
+def run_config(session: Session, options: DebuggerOptions, model=None) -> dict:
+    """The resolved configuration of a debugger run, saved in the recording."""
+    from dataclasses import asdict
+
+    from contact_viz import __version__
+
+    config = {
+        "contact_viz_version": __version__,
+        "session": {"path": str(session.root.resolve()), "name": session.name, "frames": len(session),
+                    "depth": getattr(session, "depth_note", None)},
+        "options": asdict(options),
+    }
+    if model is not None:
+        config["model"] = {"threshold": model.threshold, "training_sessions": list(model.training_sessions),
+                           "label_params": asdict(model.label_params), "version": model.version}
+    return config
+
+
 def run_debugger(
     session: Session,
     rec: rerun_log.RecordingStream,
@@ -294,6 +312,7 @@ def run_debugger(
     with_right = options.with_right and session.has_right
     rerun_log.log_static(rec, session, depth_step=step, depth_K=decimated_intrinsics(K, step),
                          with_right=with_right, with_model=model is not None)
+    rerun_log.log_config(rec, run_config(session, options, model))
     rerun_log.send_known_series(rec, session, indices, threshold=None if model is None else model.threshold)
     if model is None:
         rerun_log.log_model_hint(rec, indices[0], float(session.timestamps_s[indices[0]]))

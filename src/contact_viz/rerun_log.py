@@ -31,12 +31,14 @@ Entity tree (the README lists it too)::
     series/diagnostics/invalid_depth_fraction   Scalars: share of band pixels with invalid depth
     series/diagnostics/<code>      Scalars (points): a marker at each frame where that check fired
     log                            TextLog: bad frames, diagnostics, the no-model hint
+    config                         TextDocument (static): the run's resolved configuration (JSON)
 
 Timelines: ``frame`` (sequence, the frame's index in the session) and ``time`` (duration, s).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from collections.abc import Sequence
@@ -68,6 +70,7 @@ __all__ = [
     "RecordingStream",
     "open_recording",
     "ENTITY_CLOUD_FAR",
+    "ENTITY_CONFIG",
     "ENTITY_CLOUD_NEAR",
     "ENTITY_DEPTH_CAMERA",
     "ENTITY_DEPTH_IMAGE",
@@ -144,6 +147,7 @@ ENTITY_SERIES_PREDICTED = "series/contact/predicted"
 ENTITY_SERIES_DIAGNOSTICS = "series/diagnostics"
 ENTITY_SERIES_INVALID_DEPTH = "series/diagnostics/invalid_depth_fraction"
 ENTITY_LOG = "log"
+ENTITY_CONFIG = "config"  # TextDocument (static): the resolved configuration of the run, JSON
 
 TIMELINE_FRAME = "frame"  # sequence timeline: frame index in the session
 TIMELINE_TIME = "time"  # duration timeline: session time, s
@@ -223,6 +227,12 @@ def _series_lines(key: str) -> rr.SeriesLines:
         colors=[style.rgba], widths=[style.width_px], names=[style.name], visible_series=[style.visible],
         interpolation_mode=rr.components.InterpolationMode.StepAfter if style.step else None,
     )
+
+
+def log_config(rec: rr.RecordingStream, config: dict) -> None:
+    """Save the run's resolved configuration (a JSON-ready dict) in the recording, statically."""
+    text = json.dumps(config, indent=2, default=str)
+    rec.log(ENTITY_CONFIG, rr.TextDocument(f"```json\n{text}\n```", media_type=rr.MediaType.MARKDOWN), static=True)
 
 
 def log_static(
