@@ -422,3 +422,22 @@ def test_progress_and_bad_input(tmp_path):
         SynthParams(press_depth_m=(0.005, 0.002))
     with pytest.raises(TypeError, match="SynthParams"):
         generate_session(tmp_path / "q", {"phantom": "cup"})
+
+
+def test_an_interrupted_run_leaves_no_partial_session(tmp_path):
+    def stop_after_two(done, total):
+        if done == 2:
+            raise KeyboardInterrupt
+
+    new = tmp_path / "new"
+    with pytest.raises(KeyboardInterrupt):
+        generate_session(new, SynthParams(frames=5, **TINY), progress=stop_after_two)
+    assert list(tmp_path.iterdir()) == []  # neither the session nor its hidden work folder
+    # Interrupting an overwrite leaves the previous session whole.
+    old = tmp_path / "old"
+    generate_session(old, SynthParams(frames=3, **TINY))
+    before = sorted((p.relative_to(old), p.stat().st_size) for p in old.rglob("*"))
+    with pytest.raises(KeyboardInterrupt):
+        generate_session(old, SynthParams(frames=5, seed=9, **TINY), overwrite=True, progress=stop_after_two)
+    assert sorted((p.relative_to(old), p.stat().st_size) for p in old.rglob("*")) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["old"]

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import tempfile
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -1333,21 +1334,35 @@ _SESSION_FILES = ("session.json", "K.txt", "force.csv", "truth.csv", "labels.csv
 _SESSION_DIRS = ("left", "right", "masks", "depth")
 
 
-def _prepare_dir(out_dir: Path, overwrite: bool) -> None:
+def _check_target(out_dir: Path, overwrite: bool) -> None:
+    """Refuse a file, or a non-empty directory unless ``overwrite``; changes nothing."""
     if out_dir.exists() and not out_dir.is_dir():
         raise FileExistsError(f"{out_dir}: expected a directory (or a new path), found a file")
-    if out_dir.exists() and any(out_dir.iterdir()):
-        if not overwrite:
-            raise FileExistsError(
-                f"{out_dir}: expected an empty or new directory; pass overwrite=True to replace a session there"
-            )
-        for name in _SESSION_FILES:
-            (out_dir / name).unlink(missing_ok=True)
-        for name in _SESSION_DIRS:
-            if (out_dir / name).is_dir():
-                shutil.rmtree(out_dir / name)
+    if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
+        raise FileExistsError(
+            f"{out_dir}: expected an empty or new directory; pass overwrite=True to replace a session there"
+        )
+
+
+def _install(work: Path, out_dir: Path) -> None:
+    """Move the finished session from ``work`` to ``out_dir``, session.json last.
+
+    A new or empty ``out_dir`` is replaced by a rename; in an existing one (overwrite) the previous
+    session's own files are removed first and other files are left alone.
+    """
+    if out_dir.is_dir() and not any(out_dir.iterdir()):
+        out_dir.rmdir()
+    if not out_dir.exists():
+        work.rename(out_dir)
+        return
+    for name in _SESSION_FILES:
+        (out_dir / name).unlink(missing_ok=True)
     for name in _SESSION_DIRS:
-        (out_dir / name).mkdir(parents=True, exist_ok=True)
+        if (out_dir / name).is_dir():
+            shutil.rmtree(out_dir / name)
+    for entry in sorted(work.iterdir(), key=lambda e: e.name == "session.json"):
+        entry.rename(out_dir / entry.name)
+    work.rmdir()
 
 
 def _write_frame(out_dir: Path, stem: str, views, depth: np.ndarray, jpeg_quality: int, palette: list[int]) -> None:
@@ -1406,7 +1421,25 @@ def generate_session(
     if not isinstance(params, SynthParams):
         raise TypeError(f"params must be a SynthParams, got {type(params).__name__}")
     out_dir = Path(out_dir)
-    _prepare_dir(out_dir, overwrite)
+    _check_target(out_dir, overwrite)
+    # Everything is written into a hidden sibling folder and moved into place when complete, so
+    # an interrupted run never leaves a partial session that reads like a whole one.
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        _render_session(work, out_dir.resolve().name, params, progress)
+        _install(work, out_dir)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def _render_session(out_dir: Path, name: str, params: SynthParams,
+                    progress: Callable[[int, int], None] | None) -> None:
+    """Write the whole session into the (new, empty) folder ``out_dir``."""
+    for sub in _SESSION_DIRS:
+        (out_dir / sub).mkdir()
     camera, frame = stereo_camera(params), tissue_frame(params)
     track = plan_tool_track(params)
     renderer = _Renderer(params, camera, frame, _rng(params, _STREAM_TEXTURE))
@@ -1435,7 +1468,7 @@ def generate_session(
             fut.result()
 
     session = {
-        "name": out_dir.resolve().name,
+        "name": name,
         "phantom": params.phantom,
         "task": params.task,
         "fps": params.fps,
@@ -1444,4 +1477,3 @@ def generate_session(
     with atomic_write(out_dir / "session.json") as f:
         json.dump(session, f, indent=2)
         f.write("\n")
-    return out_dir
