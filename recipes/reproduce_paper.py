@@ -69,7 +69,7 @@ from contact_viz.extract import cached_features, feature_arrays
 from contact_viz.hmm import LosoEnsemble
 from contact_viz.metrics import MACRO_ROW, METRIC_KEYS, format_table, macro_mean, session_metrics
 from contact_viz.model_file import ContactModel, save_model
-from contact_viz.params import LabelParams, PatchParams, from_dict, to_dict
+from contact_viz.params import LabelParams, PatchParams, read_patch_params, to_dict
 from contact_viz.session import BadFrame, Session, open_session
 
 RECIPES_DIR = Path(__file__).resolve().parent
@@ -378,15 +378,6 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
-def load_patch_params(path: Path) -> PatchParams:
-    try:
-        data = json.loads(path.read_text())
-        return from_dict(PatchParams, data.get("patch_params", data))
-    except (OSError, json.JSONDecodeError, AttributeError, TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: expected a JSON object of PatchParams fields or {{\"patch_params\": {{...}}}} "
-                         f"({exc})") from None
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
@@ -577,7 +568,7 @@ def run(args: argparse.Namespace) -> int:
             f"(OOF F1 {grid_result['best']['oof_f1']:.4f})")
         timer.lap("grid_search")
     else:
-        params = PatchParams() if args.params is None else load_patch_params(args.params)
+        params = PatchParams() if args.params is None else read_patch_params(args.params)
 
     hmm, hmm_ensemble, test_features = fit_hmm(study, params, label_params, args.cache_dir, out)
     timer.lap("features_and_hmm")

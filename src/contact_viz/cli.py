@@ -67,10 +67,10 @@ CacheDir = Annotated[Optional[Path], typer.Option(help="Cache of features and co
 
 def _resolve_params(params_file: Optional[Path], contact_force: float):
     """PatchParams from --params (defaults otherwise) and LabelParams from --contact-force; exits on error."""
-    from .params import LabelParams, PatchParams, from_dict
+    from .params import LabelParams, PatchParams, read_patch_params
 
     try:
-        params = PatchParams() if params_file is None else from_dict(PatchParams, _load_params(params_file))
+        params = PatchParams() if params_file is None else read_patch_params(params_file)
         return params, LabelParams(contact_force_n=contact_force)
     except ValueError as exc:
         _fail(str(exc))
@@ -118,18 +118,6 @@ def extract(
     typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {len(bad)} unreadable")
     if len(bad) == len(rows):
         _fail(f"no frame of {session.root} could be read")
-
-
-def _load_params(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: expected a JSON object of PatchParams fields ({exc})") from None
-    if isinstance(data, dict) and "patch_params" in data:
-        data = data["patch_params"]
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object of PatchParams fields")
-    return data
 
 
 @app.command()

@@ -20,7 +20,6 @@ Library code: no typer, no printing.
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -38,7 +37,7 @@ from contact_viz.extract import iter_frame_results
 from contact_viz.hmm import StreamingFilter
 from contact_viz.params import PatchParams
 from contact_viz.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
-from contact_viz.session import IMAGE_SUFFIXES, Session, read_rgb
+from contact_viz.session import Session, read_rgb
 
 __all__ = [
     "DebuggerOptions",
@@ -158,27 +157,13 @@ class _Images:
     notes: tuple[str, ...]
 
 
-def _image_files(directory: Path) -> dict[str, Path]:
-    """stem -> image file in ``directory`` (the session reader's rule: suffix in IMAGE_SUFFIXES, any case)."""
-    if not directory.is_dir():
-        return {}
-    found = {}
-    with os.scandir(directory) as entries:
-        for entry in entries:
-            stem, suffix = os.path.splitext(entry.name)
-            if suffix.lower() in IMAGE_SUFFIXES and entry.is_file():
-                found[stem] = Path(entry.path)
-    return found
-
-
 class _ImageReader:
     """Loads what the viewer shows of a frame's left and right images; problems become notes."""
 
     def __init__(self, session: Session, options: DebuggerOptions, with_right: bool) -> None:
         self.session = session
         self.options = options
-        self.left_files = _image_files(session.root / "left")
-        self.right_files = _image_files(session.root / "right") if with_right else {}
+        self.with_right = with_right
 
     def _read(self, side: str, path: Path, want_colors: bool):
         """(jpeg bytes, raw rgb, colour image) of one image; raises SessionError on a problem."""
@@ -225,13 +210,13 @@ class _ImageReader:
         notes = []
         left_jpeg = left_rgb = colors = right_jpeg = right_rgb = None
         try:
-            left_path = self.left_files.get(stem)
+            left_path = self.session.image_path("left", index)
             if left_path is None:
                 raise SessionError(self.session.root / "left" / f"{stem}.jpg", "missing: expected the left image")
             left_jpeg, left_rgb, colors = self._read("left", left_path, self.options.points)
         except SessionError as exc:
             notes.append(f"frame {index}: left image not shown: {exc}")
-        right_path = self.right_files.get(stem)
+        right_path = self.session.image_path("right", index) if self.with_right else None
         if right_path is not None:
             try:
                 right_jpeg, right_rgb, _ = self._read("right", right_path, False)

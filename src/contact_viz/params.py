@@ -7,7 +7,9 @@ with every result, so a result can always be traced back to the parameters that 
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -16,6 +18,25 @@ T = TypeVar("T")
 def to_dict(params: Any) -> dict[str, Any]:
     """The dataclass ``params`` as a plain JSON-ready dict."""
     return dataclasses.asdict(params)
+
+
+def read_patch_params(path: str | Path) -> "PatchParams":
+    """PatchParams from a JSON file: an object of PatchParams fields, or {"patch_params": {...}}
+    (as grid_search.py and features.csv.json write it). Any problem is one ValueError naming the file."""
+    path = Path(path)
+    expected = "expected a JSON object of PatchParams fields or {\"patch_params\": {...}}"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: {expected} ({exc})") from None
+    if isinstance(data, dict) and "patch_params" in data:
+        data = data["patch_params"]
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: {expected}")
+    try:
+        return from_dict(PatchParams, data)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def from_dict(cls: type[T], data: dict[str, Any]) -> T:

@@ -772,6 +772,13 @@ class Session:
             raise SessionError(expected, f"missing: expected {what} for frame {stem!r}")
         return path
 
+    def image_path(self, side: str, index: int) -> Path | None:
+        """The ``side`` ("left" or "right") image file of frame ``index``, or None when there is none."""
+        if side not in ("left", "right"):
+            raise ValueError(f"side must be 'left' or 'right', got {side!r}")
+        files = self._left_files if side == "left" else self._right_files
+        return files.get(self.stems[index])
+
     def _image(self, side: str, stem: str, decoded: dict[str, np.ndarray]) -> np.ndarray:
         """Frame ``stem``'s ``side`` image, (H, W, 3) uint8 RGB, rectified if needed; memoized in ``decoded``."""
         if side not in decoded:
