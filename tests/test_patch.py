@@ -39,7 +39,13 @@ def literal_patch(depth, tool, p: PatchParams):
     valid = np.isfinite(depth) & (depth > 0)
     dist_in = distance_transform_edt(tool)
     dist_out = distance_transform_edt(~tool)
-    shaft = 2 * dist_in.max() - 1
+    # The shaft width is measured among the image's even-row, even-column pixels (2 px apart),
+    # or among all pixels when the tool covers none or all of those.
+    grid = tool[::2, ::2]
+    if grid.any() and not grid.all():
+        shaft = 2 * distance_transform_edt(grid, sampling=2).max() - 1
+    else:
+        shaft = 2 * dist_in.max() - 1
     band_w = min(max(p.band_scale * shaft, p.band_min_px), p.band_max_px)
     interior = tool & (dist_in > p.erosion_px)
     ring = (tool & ~interior) | (~tool & (dist_out <= p.ring_px))
@@ -64,7 +70,7 @@ def literal_patch(depth, tool, p: PatchParams):
         near = [abs(d[q]) for q in window(y, x, p.n2 // 2) if q in d]
         if len(near) >= p.tau_patch:
             s[(y, x)] = sum(near) / len(near)
-    out = {"interior": interior, "ring": ring, "band": band, "d": d, "s": s, "band_w": band_w}
+    out = {"interior": interior, "ring": ring, "band": band, "d": d, "s": s, "band_w": band_w, "shaft": shaft}
     if not band_pixels:
         out["reason"] = REASON_NO_BAND
     elif not d:
@@ -111,6 +117,7 @@ def assert_matches_literal(depth, tool, params):
         np.testing.assert_array_equal(fast.ring, slow["ring"])
         np.testing.assert_array_equal(fast.band, slow["band"])
         assert fast.band_width_px == pytest.approx(slow["band_w"], abs=1e-6)
+        assert fast.shaft_width_px == pytest.approx(slow["shaft"], abs=1e-4)
         # d and s at every band pixel, NaN exactly where the literal version has none.
         for (y, x), d, s in zip(fast.band_yx, fast.band_distance_m, fast.band_score_m):
             key = (int(y), int(x))
@@ -224,6 +231,45 @@ def test_patch_goes_where_the_tissue_is_closest():
     assert touching.signal == pytest.approx(4.0)  # -log10(eps) with eps = 1e-4
 
 
+@pytest.mark.parametrize("seed", range(30))
+def test_shaft_width_matches_literal_on_grid_edge_cases(seed):
+    """Shaft width against scipy on masks that probe the 2 px grid: 1-2 px lines on odd or even
+    rows and columns, shapes at odd offsets and against the image border, and full masks."""
+    rng = np.random.default_rng(5000 + seed)
+    height, width = int(rng.integers(9, 40)), int(rng.integers(9, 40))
+    tool = np.zeros((height, width), bool)
+    kind = seed % 5
+    if kind == 0:  # a thin horizontal line, 1 or 2 px, on an odd or even row
+        y = int(rng.integers(0, height - 2))
+        tool[y:y + int(rng.integers(1, 3)), int(rng.integers(0, width // 2)):] = True
+    elif kind == 1:  # a thin vertical line
+        x = int(rng.integers(0, width - 2))
+        tool[int(rng.integers(0, height // 2)):, x:x + int(rng.integers(1, 3))] = True
+    elif kind == 2:  # a rectangle at random offsets, possibly touching the borders
+        y0, x0 = int(rng.integers(0, height - 2)), int(rng.integers(0, width - 2))
+        tool[y0:y0 + int(rng.integers(2, height)), x0:x0 + int(rng.integers(2, width))] = True
+    elif kind == 3:  # random speckle
+        tool = rng.random((height, width)) < rng.uniform(0.05, 0.95)
+    else:  # everything but a few pixels
+        tool[:] = True
+        tool[rng.integers(0, height, 3), rng.integers(0, width, 3)] = False
+    if not tool.any() or tool.all():
+        tool[0, 0], tool[-1, -1] = True, False
+    depth = np.full((height, width), 0.1, np.float32)
+    fast = compute_patch(depth, tool, SMALL)
+    assert fast.shaft_width_px == pytest.approx(literal_patch(depth.astype(np.float64), tool, SMALL)["shaft"], abs=1e-4)
+
+
+def test_shaft_width_worked_example():
+    """A shaft on rows 30-50 (21 px). On the 2 px grid its rows are 30, 32, ..., 50 and the nearest
+    background grid rows are 28 and 52, so grid row 40 is 12 px from the background: width
+    2 * 12 - 1 = 23 px (the full-resolution value is 2 * 11 - 1 = 21 px)."""
+    tool = np.zeros((80, 120), bool)
+    tool[30:51, 10:110] = True
+    result = compute_patch(np.full((80, 120), 0.1, np.float32), tool)
+    assert result.shaft_width_px == 23.0
+
+
 def test_band_reach_scales_with_shaft_width():
     narrow, wide = np.zeros((200, 200), bool), np.zeros((200, 200), bool)
     narrow[95:105, :120] = True  # 10 px shaft
@@ -290,3 +336,16 @@ def test_distance_grid_equals_one_call_per_parameter_set(seed):
             for n1, tt, n2, tp in product((11, 15), (3, 8), (3, 5), (2, 5))]
     expected = [compute_patch(depth, tool, p).distance_m for p in grid]
     np.testing.assert_array_equal(patch_distance_grid(depth, tool, grid), expected)
+
+
+@pytest.mark.parametrize("radius_px", [0.0, 1.0, 1.5, 2.0, 3.0, 4.7, 8.0, 11.0, 13.25])
+def test_disc_dilation_by_rectangles_equals_disc_kernel(radius_px):
+    """The staircase-of-rectangles dilation is exactly the dilation by the disc kernel."""
+    import cv2
+
+    from contact_viz.patch import _dilate_disc, _disc
+
+    rng = np.random.default_rng(int(radius_px * 100))
+    mask = (rng.random((60, 70)) < 0.02).astype(np.uint8)
+    mask[20:30, 0:40] = 1  # a shaft touching the border
+    np.testing.assert_array_equal(_dilate_disc(mask, radius_px), cv2.dilate(mask, _disc(radius_px)))
