@@ -174,16 +174,23 @@ def test_mask_formats(tmp_path):
     np.testing.assert_array_equal(read_tool_mask(pal, object_id=1), ids == 1)
 
 
-def test_depth_npy_invalid_values_become_nan(tmp_path):
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, ">f4"])
+def test_depth_npy_read_as_stored_and_read_only(tmp_path, dtype):
+    """Values (invalid ones included) come back as float32 exactly as stored; the array is
+    read-only, and reading it leaves the file unchanged."""
     depth = np.full((2, 4), 0.1, np.float64)
     depth[0, :] = [0.0, np.nan, np.inf, -0.5]
     depth[1, :] = [0.125, 0.25, -np.inf, 1.5]
     path = tmp_path / "d.npy"
-    np.save(path, depth)
+    np.save(path, depth.astype(dtype))
+    before = path.read_bytes()
     out = read_depth_m(path)
-    assert out.dtype == np.float32
-    expected = np.array([[np.nan, np.nan, np.nan, np.nan], [0.125, 0.25, np.nan, 1.5]], np.float32)
-    np.testing.assert_array_equal(out, expected)  # NaN positions must match too
+    assert out.dtype == np.float32 and out.shape == (2, 4) and type(out) is np.ndarray
+    np.testing.assert_array_equal(out, depth.astype(np.float32))  # NaN positions must match too
+    with pytest.raises(ValueError):
+        out[0, 0] = 1.0
+    del out
+    assert path.read_bytes() == before
 
 
 def test_depth_png_millimetres_to_metres(tmp_path):
@@ -192,8 +199,9 @@ def test_depth_png_millimetres_to_metres(tmp_path):
     cv2.imwrite(str(path), mm)
     out = read_depth_m(path)
     assert out.dtype == np.float32
-    expected = np.array([[np.nan, 1.0, 1.234], [65.535, 0.005, np.nan]], np.float32)
-    np.testing.assert_allclose(out, expected, rtol=1e-7, equal_nan=True)
+    expected = np.array([[0.0, 1.0, 1.234], [65.535, 0.005, 0.0]], np.float32)  # 0 = invalid, kept
+    np.testing.assert_allclose(out, expected, rtol=1e-7)
+    assert not out.flags.writeable
 
 
 def test_depth_png_in_session(tmp_path):
@@ -206,7 +214,7 @@ def test_depth_png_in_session(tmp_path):
     s = open_session(root)
     frame = s.load_frame(1, layers=("depth",))
     assert isinstance(frame, Frame)
-    assert math.isnan(frame.depth_m[0, 0])
+    assert frame.depth_m[0, 0] == 0.0  # invalid, as stored
     assert frame.depth_m[1, 1] == np.float32(0.15)
 
 

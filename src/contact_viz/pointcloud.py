@@ -6,7 +6,7 @@ assumes) with depth ``Z`` maps to ``Z * K^-1 [u, v, 1]^T``, skew included. This 
 back-projects an ``rr.DepthImage`` under an ``rr.Pinhole`` with the same K, so the explicit cloud
 and the viewer's own depth cloud coincide.
 
-A depth value is valid when finite and > 0 (the session reader already turns invalid depth into NaN).
+A depth value is valid when finite and > 0 (the session reader passes invalid depth on as stored: 0, NaN, inf or negative).
 
 The viewer's cloud (:func:`depth_cloud`) keeps every pixel in a square around the selected patch
 (where the gap is measured) and, elsewhere, every ``stride``-th pixel merged into voxels with

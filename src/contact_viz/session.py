@@ -103,7 +103,7 @@ class Frame:
     stem: str  # file stem shared by left/, right/, masks/, depth/
     timestamp_s: float  # frame time, s
     tool_mask: np.ndarray | None  # (H, W) bool, True = tool
-    depth_m: np.ndarray | None  # (H, W) float32, m; NaN where invalid
+    depth_m: np.ndarray | None  # (H, W) float32, m, read-only; invalid where not a finite number > 0
     left_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB
     right_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB; None also when the frame has no right image
 
@@ -602,21 +602,22 @@ def _load_float_npy(path: Path, what: str) -> np.ndarray:
         shape = getattr(raw, "shape", None)
         dtype = getattr(raw, "dtype", type(raw).__name__)
         raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
-    array = raw.astype(np.float32, copy=False)
-    if not array.flags.writeable or not array.flags.c_contiguous:
-        array = np.ascontiguousarray(array).copy()
-    return array
+    return np.ascontiguousarray(raw, dtype=np.float32)
 
 
 def read_depth_m(path: Path) -> np.ndarray:
-    """Decode a depth file to (H, W) float32 metres, NaN where invalid (0, NaN, inf or negative).
+    """Read a depth file as (H, W) float32 metres, read-only, values as stored.
 
     ``.npy``: 2-D float32/float64 metres (FoundationStereo depth_meter.npy).
     ``.png``: 16-bit single-channel millimetres.
+    Invalid depth (0, NaN, inf or negative in the file) is left as it is: every consumer treats a
+    value as valid only when it is a finite number > 0, so no pass over the frame is spent on it.
     """
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        return _invalid_to_nan(_load_float_npy(path, "a 2-D float32 depth array in metres (.npy)"))
+        depth = _load_float_npy(path, "a 2-D float32 depth array in metres (.npy)")
+        depth.flags.writeable = False
+        return depth
     if suffix == ".png":
         what = "a 16-bit single-channel depth PNG in millimetres"
         data = _read_bytes(path, what)
@@ -633,7 +634,8 @@ def read_depth_m(path: Path) -> np.ndarray:
             )
         depth = raw.astype(np.float32)
         depth /= np.float32(MM_PER_M)
-        return _invalid_to_nan(depth)
+        depth.flags.writeable = False
+        return depth
     raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
 
 
