@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from contact_viz.extract import (FEATURE_COLUMNS, REASON_BAD_FRAME, BadFrameWarning, extract_features,
-                                 iter_frame_results)
-from contact_viz.params import PatchParams
+                                 iter_frame_results, write_features)
+from contact_viz.params import PatchParams, to_dict
 from contact_viz.patch import compute_patch
 from contact_viz.session import open_session
 from contact_viz.synth import SynthParams, generate_session
@@ -148,3 +148,19 @@ def test_extract_does_not_import_heavy_modules(cup_session, tmp_path):
                           env={**os.environ, "COLUMNS": "100"})
     assert done.returncode == 0, done.stderr
     assert "HEAVY []" in done.stdout
+
+
+def test_read_features_config_round_trip_and_errors(tmp_path):
+    from contact_viz.extract import read_features_config
+
+    params = PatchParams(n2=15, tau_tool=20)
+    path = tmp_path / "features.csv"
+    config = {"session": {"name": "cup-1"}, "patch_params": to_dict(params)}
+    write_features([], path, config)
+    assert read_features_config(path) == (params, "cup-1")
+    (tmp_path / "features.csv.json").write_text('{"patch_params": {}}')
+    with pytest.raises(ValueError, match=r"features.csv.json: expected the session's name"):
+        read_features_config(path)
+    (tmp_path / "features.csv.json").unlink()
+    with pytest.raises(ValueError, match=r"features.csv.json: missing"):
+        read_features_config(path)

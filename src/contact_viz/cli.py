@@ -158,24 +158,20 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     with ``params``, cached) or a features CSV written by `contact-viz extract`, whose saved
     configuration must have the same patch parameters as ``params``."""
     from .errors import SessionError
-    from .extract import cached_features, feature_arrays, read_features
+    from .extract import cached_features, feature_arrays, read_features, read_features_config
     from .model_file import params_mismatch
-    from .params import PatchParams, from_dict
     from .session import open_session
 
     out = []
     for source in sources:
         try:
             if source.is_file():
-                config_path = source.with_name(source.name + ".json")
-                if not config_path.exists():
-                    _fail(f"{config_path}: missing; a features CSV needs the configuration `extract` writes beside it")
-                config = json.loads(config_path.read_text())
-                diff = params_mismatch(params, from_dict(PatchParams, config["patch_params"]))
+                file_params, name = read_features_config(source)
+                diff = params_mismatch(params, file_params)
                 if diff:
                     _fail(f"{source}: features were computed with other patch parameters than the model's "
                           f"({'; '.join(diff)}); re-extract them with the model's parameters")
-                rows, name = read_features(source), config["session"]["name"]
+                rows = read_features(source)
             else:
                 session = open_session(source, object_id=object_id, label_params=label_params,
                                        cache_dir=cache_dir)

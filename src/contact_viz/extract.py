@@ -23,7 +23,7 @@ import numpy as np
 
 from . import __version__
 from .atomic import atomic_write
-from .params import LabelParams, PatchParams, to_dict
+from .params import LabelParams, PatchParams, read_patch_params, to_dict
 from .patch import PatchResult, compute_patch
 from .session import BadFrame, Frame, Session
 
@@ -190,6 +190,22 @@ def read_features(path: str | Path) -> list[dict[str, str]]:
         if missing:
             raise ValueError(f"{path}: not a contact-viz features file (missing columns {missing})")
         return list(reader)
+
+
+def read_features_config(path: str | Path) -> tuple[PatchParams, str]:
+    """The patch parameters and session name saved beside a features CSV (``<path>.json``, as
+    :func:`write_features` writes it). A missing or malformed file is a ValueError naming it."""
+    config_path = Path(path).with_name(Path(path).name + ".json")
+    if not config_path.exists():
+        raise ValueError(f"{config_path}: missing; a features CSV needs the configuration `extract` writes beside it")
+    params = read_patch_params(config_path)
+    try:
+        name = json.loads(config_path.read_text())["session"]["name"]
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{config_path}: expected the session's name at session.name ({exc!r})") from None
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{config_path}: expected a non-empty session.name, got {name!r}")
+    return params, name
 
 
 def cached_features(
