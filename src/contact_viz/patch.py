@@ -201,10 +201,10 @@ def _shaft_width_px(tool_u8: np.ndarray, row_phase: int, col_phase: int) -> floa
     """Visible shaft width, px: ``2 * max(distance to background) - 1`` over the tool pixels.
 
     ``tool_u8`` is the (h, w) uint8 0/1 tool crop, framed by at least 2 px of background wherever
-    it does not meet the image border; ``row_phase``/``col_phase`` (0 or 1) are the crop row and
-    column of the image's even rows and columns. The distance is measured among the image's
-    even-row, even-column pixels (``SHAFT_GRID_PX`` apart), or among all pixels when the tool
-    covers none or all of those.
+    it does not meet the image border; ``row_phase``/``col_phase`` are the crop row and column
+    of the first image row and column that are multiples of ``SHAFT_GRID_PX``. The distance is
+    measured among those grid pixels (``SHAFT_GRID_PX`` apart), or among all pixels when the tool
+    covers none or all of them.
     """
     grid = np.ascontiguousarray(tool_u8[row_phase::SHAFT_GRID_PX, col_phase::SHAFT_GRID_PX])
     if grid.any() and not grid.all():
@@ -291,7 +291,7 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
         layer_ids[y0:y1, x0:x1] = LAYER_INTERIOR
         return _empty_result(shape, REASON_NO_BAND, layer_ids)
 
-    shaft_width = _shaft_width_px(tool_u8, y0 % SHAFT_GRID_PX, x0 % SHAFT_GRID_PX)
+    shaft_width = _shaft_width_px(tool_u8, -y0 % SHAFT_GRID_PX, -x0 % SHAFT_GRID_PX)
     band_w = band_width_px(shaft_width, params)
     # Thresholds of the Euclidean distance to the mask edge are morphology with exact discs:
     # erosion keeps tool pixels with no background within erosion_px (outside the image is not
