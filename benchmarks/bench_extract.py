@@ -6,7 +6,10 @@ paper's sessions have about 1,400 frames, and start-up weighs less in a longer s
 session it times, over --repeats runs each, (a) decoding every mask PNG and depth .npy once in a
 plain loop (PIL + numpy, one thread, in this process: its own start-up is not counted) and (b) the
 whole `contact-viz extract` command in a fresh process, start-up included. Prints the medians and
-their ratio (the issue's target: at most about 1.5).
+their ratio (the issue's target: at most about 1.5). With a warm page cache it also times the two
+parts alone on one thread in a fresh process (the session reader's decoding of mask + depth, and
+the patch) and prints the bound they set: their sum spread perfectly over two cores, before any
+start-up or output.
 
 --cold drops the page cache before every run (root only; Linux) and then warms the Python
 libraries (`contact-viz --help`, numpy, PIL), so the session's files come from disk while the
@@ -77,6 +80,34 @@ def looped_session(source: Path, loops: int) -> Path:
     return target
 
 
+def parts_per_frame(session_dir: Path) -> tuple[float, float]:
+    """Seconds per frame, one thread, in a fresh process: the session reader's decoding of
+    mask + depth, and compute_patch alone."""
+    out = subprocess.run([sys.executable, __file__, "--parts-of", str(session_dir)],
+                         check=True, capture_output=True, text=True)
+    reader_s, patch_s = (float(v) for v in out.stdout.split())
+    return reader_s, patch_s
+
+
+def _print_parts(session_dir: Path) -> None:
+    import cv2
+
+    from contact_viz.patch import compute_patch
+    from contact_viz.session import open_session
+
+    cv2.setNumThreads(1)
+    session = open_session(session_dir)
+    decode_s, patch_s = [], []
+    for index in range(len(session)):
+        t0 = time.perf_counter()
+        frame = session.load_frame(index)
+        t1 = time.perf_counter()
+        compute_patch(frame.depth_m, frame.tool_mask)
+        patch_s.append(time.perf_counter() - t1)
+        decode_s.append(t1 - t0)
+    print(statistics.median(decode_s), statistics.median(patch_s))
+
+
 def measure(session: Path, frames: int, repeats: int, cold: bool, workdir: Path) -> None:
     decode_s, extract_s = [], []
     for _ in range(repeats):
@@ -93,6 +124,11 @@ def measure(session: Path, frames: int, repeats: int, cold: bool, workdir: Path)
     print(f"  contact-viz extract (whole command, start-up included): {e:.2f} s "
           f"({1000 * e / frames:.2f} ms/frame, {frames / e:.0f} frames/s)")
     print(f"  ratio extract / decode: {e / d:.2f}")
+    if not cold:
+        reader_s, patch_s = parts_per_frame(session)
+        bound = (reader_s + patch_s) / 2 * frames
+        print(f"  parts, one thread, medians: reader {1000 * reader_s:.2f} ms/frame, patch {1000 * patch_s:.2f} "
+              f"ms/frame; both spread perfectly over 2 cores, no start-up: {bound:.2f} s = {bound / d:.2f}x decode")
 
 
 def main() -> None:
@@ -102,7 +138,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cold", action="store_true", help="drop the page cache before every run (root)")
     parser.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "contact-viz-bench")
+    parser.add_argument("--parts-of", type=Path, help=argparse.SUPPRESS)  # the child of parts_per_frame
     args = parser.parse_args()
+    if args.parts_of is not None:
+        _print_parts(args.parts_of)
+        return
 
     from contact_viz.synth import SynthParams, generate_session
 

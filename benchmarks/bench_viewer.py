@@ -28,9 +28,6 @@ from pathlib import Path
 CHILD = r"""
 import json, resource, sys, time, warnings
 t_start = time.perf_counter()
-from contact_viz.allocator import retain_freed_memory
-if sys.argv[4] == "retain":
-    retain_freed_memory()  # as the command line does
 from contact_viz.debugger import DebuggerOptions, run_debugger
 from contact_viz.rerun_log import open_recording
 from contact_viz.rerun_log import default_blueprint
@@ -49,8 +46,8 @@ print(json.dumps({"frames": summary.frames, "elapsed_s": summary.elapsed_s, "tot
 """
 
 
-def run_child(session: Path, out: Path, frames: int, allocator: str) -> dict:
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(session), str(out), str(frames), allocator],
+def run_child(session: Path, out: Path, frames: int) -> dict:
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(session), str(out), str(frames)],
                           check=True, capture_output=True, text=True)
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     result["rrd_mb"] = out.stat().st_size / 1e6
@@ -80,9 +77,6 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60, help="N: the runs use N and 2N frames")
     parser.add_argument("--repeats", type=int, default=1, help="runs of each size (medians are reported)")
     parser.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "contact-viz-bench")
-    parser.add_argument("--allocator", choices=("retain", "default"), default="retain",
-                        help="retain: glibc keeps freed frame buffers, as the command line sets it "
-                             "(contact_viz.allocator); default: glibc's own behaviour")
     args = parser.parse_args()
 
     import warnings
@@ -102,11 +96,10 @@ def main() -> None:
     print(f"reference, one thread: decode mask+depth {1000 * decode_s:.1f} ms/frame, "
           f"patch {1000 * patch_s:.1f} ms/frame")
     for frames in (n, 2 * n):
-        runs = [run_child(session, args.workdir / f"view-{frames}.rrd", frames, args.allocator)
-                for _ in range(args.repeats)]
+        runs = [run_child(session, args.workdir / f"view-{frames}.rrd", frames) for _ in range(args.repeats)]
         med = {key: statistics.median(r[key] for r in runs) for key in runs[0]}
         per = 1000.0 / frames
-        print(f"\n{frames} frames at 1920x1080, default options, allocator {args.allocator}:")
+        print(f"\n{frames} frames at 1920x1080, default options:")
         print(f"  run loop: {med['elapsed_s']:.2f} s = {frames / med['elapsed_s']:.1f} frames/s "
               f"(whole process with imports and start-up: {frames / med['total_s']:.1f} frames/s)")
         print(f"  .rrd: {med['rrd_mb']:.1f} MB = {med['rrd_mb'] / frames:.2f} MB/frame")

@@ -478,9 +478,6 @@ def main(argv: list[str] | None = None) -> None:
     """Console-script entry point. `contact-viz SESSION_DIR [options]` means `contact-viz view SESSION_DIR`."""
     import sys
 
-    from .allocator import retain_freed_memory
-
-    retain_freed_memory()  # frames are decoded and dropped many times a second: reuse their memory
     args = list(sys.argv[1:] if argv is None else argv)
     if args and not args[0].startswith("-") and args[0] not in _COMMANDS:
         args.insert(0, "view")
