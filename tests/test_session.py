@@ -608,6 +608,7 @@ def test_disparity_source_and_preference_order(tmp_path):
     s = open_session(root, cache_dir=tmp_path / "cache")
     assert s.depth_source == "disparity" and s.depth_cache_dir is None and "disparity/" in s.depth_note
     depth = s.load_frame(2, layers=("depth",)).depth_m
+    assert not depth.flags.writeable  # a frame's depth is read-only whatever its source
     # depth = fx * B / d = 200 * 0.005 / 6 m; zero, negative, NaN and inf disparities are invalid.
     assert depth[5, 5] == pytest.approx(1.0 / 6.0, rel=1e-6)
     assert np.isnan(depth[0, :4]).all() and np.isfinite(depth[1:]).all()

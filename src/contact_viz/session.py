@@ -868,6 +868,7 @@ class Session:
                 tool_mask = self._mask(stem)
             if "depth" in layers:
                 depth_m, _ = self._depth(stem, decoded)
+                depth_m.flags.writeable = False  # whatever its source, a frame's depth is read-only
             if "left" in layers:
                 left_rgb = self._image("left", stem, decoded)
             if "right" in layers and stem in self._right_files:
