@@ -18,7 +18,8 @@ Split file (JSON), session names relative to the SESSIONS folder, test sessions 
               {"session": "liver_1",  "category": "new phantom"},
               {"session": "glove_1",  "category": "new phantom and task"}]}
 
-"train" needs at least two sessions (leave-one-session-out); "category" is one of CATEGORIES.
+"train" needs at least two sessions (leave-one-session-out); "category" is one of
+contact_viz.study.CATEGORIES (contact_viz.study reads and checks the file).
 
 Without SESSIONS and SPLIT the synthetic study of scripts/demo.sh is generated and run: six ``cup``
 training sessions (seeds 0-5) and one test session each on ``cup``, ``kidney``, ``liver`` and
@@ -47,7 +48,6 @@ Outputs (``-o``, default results/paper/), each written atomically:
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import json
 import platform
@@ -67,15 +67,16 @@ from contact_viz.cache import cache_key, default_cache_dir
 from contact_viz.errors import SessionError
 from contact_viz.extract import cached_features, feature_arrays
 from contact_viz.hmm import LosoEnsemble
-from contact_viz.metrics import MACRO_ROW, METRIC_KEYS, format_table, macro_mean, session_metrics
+from contact_viz.metrics import MACRO_ROW, format_table, macro_mean, session_metrics
 from contact_viz.model_file import ContactModel, save_model
 from contact_viz.params import LabelParams, PatchParams, read_patch_params, to_dict
 from contact_viz.session import BadFrame, Session, open_session
+from contact_viz.study import CATEGORIES, HeldOutEntry, Split, read_split, write_split
+from contact_viz.tables import write_per_frame, write_table1
 
 RECIPES_DIR = Path(__file__).resolve().parent
 sys.path.insert(0, str(RECIPES_DIR))  # recipes/ is not a package
 import grid_search  # noqa: E402  (the grid search step and its default grid)
-CATEGORIES = ("same phantom and task", "new phantom", "new phantom and task")  # test session categories
 PHANTOM_CATEGORY = {"cup": CATEGORIES[0], "kidney": CATEGORIES[1], "liver": CATEGORIES[1], "glove": CATEGORIES[2]}
 TEST_SEED_BASE = 100  # synthetic test seeds: 100 + index of the phantom in synth.PHANTOMS (training: 0..K-1)
 HMM_METHOD = "HMM"
@@ -117,22 +118,6 @@ PROFILES = {
 }
 
 
-@dataclass(frozen=True)
-class HeldOutEntry:
-    """One held-out session of the split."""
-
-    session: str  # path relative to the sessions folder
-    category: str  # one of CATEGORIES
-
-
-@dataclass(frozen=True)
-class Split:
-    """Which sessions train and which test, as read from a split file."""
-
-    train: tuple[str, ...]  # training session paths, relative to the sessions folder
-    test: tuple[HeldOutEntry, ...]  # held-out sessions in table order
-
-
 def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
@@ -140,39 +125,6 @@ def log(message: str) -> None:
 # --------------------------------------------------------------------------------------------
 # Split and study
 # --------------------------------------------------------------------------------------------
-
-
-def read_split(path: Path) -> Split:
-    """Read and check a split file; any problem is one ValueError naming the file and what was expected."""
-    expected = ('expected JSON {"train": [session, ...], "test": [{"session": ..., "category": ...}, ...]}')
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: split file not found; {expected}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: {expected} ({exc})") from None
-    if not isinstance(data, dict) or set(data) != {"train", "test"}:
-        found = sorted(data) if isinstance(data, dict) else type(data).__name__
-        raise ValueError(f"{path}: {expected}; found {found}")
-    train, test = data["train"], data["test"]
-    if not isinstance(train, list) or len(train) < 2 or not all(isinstance(s, str) and s for s in train):
-        raise ValueError(f"{path}: \"train\": expected a list of at least 2 session names (leave-one-session-out)")
-    if not isinstance(test, list) or not test:
-        raise ValueError(f"{path}: \"test\": expected a non-empty list of {{\"session\", \"category\"}} objects")
-    entries = []
-    for i, item in enumerate(test):
-        if not isinstance(item, dict) or set(item) != {"session", "category"} or not isinstance(item["session"], str):
-            raise ValueError(f"{path}: test[{i}]: expected {{\"session\": name, \"category\": one of "
-                             f"{list(CATEGORIES)}}}")
-        if item["category"] not in CATEGORIES:
-            raise ValueError(f"{path}: test[{i}] ({item['session']}): category {item['category']!r}: "
-                             f"expected one of {list(CATEGORIES)}")
-        entries.append(HeldOutEntry(item["session"], item["category"]))
-    names = list(train) + [e.session for e in entries]
-    repeated = sorted({n for n in names if names.count(n) > 1})
-    if repeated:
-        raise ValueError(f"{path}: every session must appear once in the split, repeated: {repeated}")
-    return Split(tuple(train), tuple(entries))
 
 
 def synthetic_study(directory: Path, profile: StudyProfile) -> tuple[Path, Path, list[dict]]:
@@ -195,12 +147,10 @@ def synthetic_study(directory: Path, profile: StudyProfile) -> tuple[Path, Path,
         start = time.perf_counter()
         generate_session(out, params, overwrite=True)
         log(f"  generated {out} ({profile.synth_frames} frames, {time.perf_counter() - start:.1f} s)")
-    split = {"train": [s["session"] for s in specs if "category" not in s],
-             "test": [{"session": s["session"], "category": s["category"]} for s in specs if "category" in s]}
+    split = Split(train=tuple(s["session"] for s in specs if "category" not in s),
+                  test=tuple(HeldOutEntry(s["session"], s["category"]) for s in specs if "category" in s))
     split_path = directory / SPLIT_FILE
-    with atomic_write(split_path) as handle:
-        json.dump(split, handle, indent=2)
-        handle.write("\n")
+    write_split(split_path, split)
     return sessions_dir, split_path, specs
 
 
@@ -286,54 +236,6 @@ def pick_figure_frame(features: Features) -> int:
 # --------------------------------------------------------------------------------------------
 # Outputs
 # --------------------------------------------------------------------------------------------
-
-
-def _num(value) -> str:
-    return "" if value is None else repr(float(value))
-
-
-def write_table1(out: Path, table: dict, methods: Sequence[str], thresholds: dict[str, float],
-                 categories: dict[str, str], paths: dict[str, str], notes: Sequence[str]) -> None:
-    """table1.md, table1.tex and table1.csv (methods side by side; the CSV has a row per session and method)."""
-    columns = ["session", "category", "method", "threshold", *METRIC_KEYS, "n_frames", "n_contact", "path", "notes"]
-    with atomic_write(out / "table1.csv", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
-        writer.writeheader()
-        for row_name, per_method in table.items():
-            for method in methods:
-                m = per_method[method]
-                writer.writerow({
-                    "session": row_name, "category": categories.get(row_name, ""), "method": method,
-                    "threshold": repr(thresholds[method]), **{k: _num(m.get(k)) for k in METRIC_KEYS},
-                    "n_frames": m.get("n_frames", ""), "n_contact": m.get("n_contact", ""),
-                    "path": paths.get(row_name, ""), "notes": "; ".join(m.get("notes", [])),
-                })
-    order = ", ".join(f"{name}: {categories[name]}" for name in table if name in categories)
-    threshold_text = ", ".join(f"{m} {thresholds[m]:.4f}" for m in methods)
-    md = ["# Table 1: held-out performance", "",
-          f"Sessions in order of domain shift ({order}). Decision thresholds: {threshold_text}.", ""]
-    md += [f"> {n}" for n in notes] + ([""] if notes else [])
-    md.append(format_table(table, style="markdown", methods=methods).rstrip())
-    metric_notes = [n for per_method in table.values() for m in per_method.values() for n in m.get("notes", [])]
-    if metric_notes:
-        md += ["", *(f"- {n}" for n in metric_notes)]
-    with atomic_write(out / "table1.md") as handle:
-        handle.write("\n".join(md).rstrip() + "\n")
-    caption = f"Held-out performance of the {' and the '.join(methods)} models."
-    tex = ["% Table 1 of the paper; needs \\usepackage{booktabs,graphicx}",
-           *(f"% NOTE: {n}" for n in notes),
-           "\\begin{table}[ht]", f"  \\caption{{{caption}}}", "  \\label{tab:results}", "  \\centering",
-           "  \\scriptsize", "  \\resizebox{\\linewidth}{!}{%",
-           format_table(table, style="latex", methods=methods).rstrip() + "%", "  }", "\\end{table}"]
-    with atomic_write(out / "table1.tex") as handle:
-        handle.write("\n".join(tex) + "\n")
-
-
-def write_per_frame(path: Path, columns: Sequence[str], rows: list[dict]) -> None:
-    with atomic_write(path, newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(columns))
-        writer.writeheader()
-        writer.writerows(rows)
 
 
 HMM_COLUMNS = ("session", "category", "frame", "timestamp_s", "signal", "posterior", "predicted", "label")

@@ -41,9 +41,7 @@ from contact_viz.session import Session, read_rgb
 
 __all__ = [
     "DebuggerOptions",
-    "OpenedRecording",
     "RunSummary",
-    "open_recording",
     "run_debugger",
     "select_frames",
 ]
