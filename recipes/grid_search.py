@@ -14,7 +14,6 @@ point are cached outside the sessions, so a rerun with a wider grid only pays fo
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import dataclass
 from itertools import product
 from pathlib import Path
@@ -28,6 +27,7 @@ from contact_viz.atomic import atomic_write
 from contact_viz.cache import cache_path
 from contact_viz.extract import BadFrameWarning
 from contact_viz.hmm import LosoEnsemble
+from contact_viz.jsonfile import write_json
 from contact_viz.params import PatchParams, to_dict
 from contact_viz.patch import distance_signal, patch_distance_grid
 from contact_viz.session import BadFrame, open_session
@@ -146,13 +146,11 @@ def main() -> None:
         print(f"{p.n1:>4} {p.n2:>4} {p.tau_tool:>8} {p.tau_patch:>9} {r.oof_f1:>8.4f} {r.oof_auprc:>10.4f} "
               f"{r.found:>6.1%}")
     best = results[0]
-    with atomic_write(args.output) as handle:
-        json.dump({"patch_params": to_dict(best.params), "grid_search": {
-            "contact_viz_version": __version__, "sessions": [str(s.resolve()) for s in args.sessions],
-            "score": "pooled out-of-fold F1 of the LOSO HMM ensemble, AUPRC as tie-breaker",
-            "best_oof_f1": best.oof_f1, "best_oof_auprc": best.oof_auprc, "grid_points": len(grid),
-            "n1": args.n1, "n2": args.n2, "tau_tool": args.tau_tool, "tau_patch": args.tau_patch}}, handle, indent=2)
-        handle.write("\n")
+    write_json(args.output, {"patch_params": to_dict(best.params), "grid_search": {
+        "contact_viz_version": __version__, "sessions": [str(s.resolve()) for s in args.sessions],
+        "score": "pooled out-of-fold F1 of the LOSO HMM ensemble, AUPRC as tie-breaker",
+        "best_oof_f1": best.oof_f1, "best_oof_auprc": best.oof_auprc, "grid_points": len(grid),
+        "n1": args.n1, "n2": args.n2, "tau_tool": args.tau_tool, "tau_patch": args.tau_patch}})
     p = best.params
     print(f"\nbest: n1={p.n1} n2={p.n2} tau_tool={p.tau_tool} tau_patch={p.tau_patch} "
           f"(OOF F1 {best.oof_f1:.4f}, AUPRC {best.oof_auprc:.4f}) -> {args.output}")

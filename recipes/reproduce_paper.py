@@ -61,12 +61,12 @@ from pathlib import Path
 import numpy as np
 
 from contact_viz import __version__
-from contact_viz.atomic import atomic_write
 from contact_viz.baseline import BaselineParams, BaselineWarning, FoldEvent, extract_crops, fit_loso
 from contact_viz.cache import cache_key, default_cache_dir
 from contact_viz.errors import SessionError
 from contact_viz.extract import cached_features, feature_arrays
 from contact_viz.hmm import LosoEnsemble
+from contact_viz.jsonfile import write_json
 from contact_viz.metrics import MACRO_ROW, format_table, macro_mean, session_metrics
 from contact_viz.model_file import ContactModel, save_model
 from contact_viz.params import LabelParams, PatchParams, read_patch_params, to_dict
@@ -171,9 +171,7 @@ def run_grid_search(train_dirs: Sequence[Path], grid_values, cache_dir: Path | N
     result = {"score": "pooled out-of-fold F1 of the LOSO HMM ensemble, AUPRC as tie-breaker",
               "grid": dict(zip(("n1", "n2", "tau_tool", "tau_patch"), (list(v) for v in grid_values))),
               "best": scored[0], "points": scored}
-    with atomic_write(out / "grid_search.json") as handle:
-        json.dump(result, handle, indent=2)
-        handle.write("\n")
+    write_json(out / "grid_search.json", result)
     return best, result
 
 
@@ -526,9 +524,7 @@ def run(args: argparse.Namespace) -> int:
                      "matplotlib": matplotlib.__version__},
         "timings_s": {**timer.steps, "total": timer.total()},
     }
-    with atomic_write(out / "config.json") as handle:
-        json.dump(config, handle, indent=2)
-        handle.write("\n")
+    write_json(out / "config.json", config)
 
     for m in methods:
         print(f"Table 1, {m.name} (threshold {m.threshold:.4f})")

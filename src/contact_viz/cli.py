@@ -6,7 +6,6 @@ inside the commands that use them, so `contact-viz extract` never pays for them 
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 from typing import Annotated, Optional
@@ -280,13 +279,12 @@ def evaluate(
             writer.writerows(per_frame_rows(scores))
     if json_out is not None:
         from . import __version__
+        from .jsonfile import write_json
         from .params import to_dict
 
-        with atomic_write(json_out) as handle:
-            json.dump({"contact_viz_version": __version__, "model": str(model_path.resolve()),
-                       "threshold": model.threshold, "patch_params": to_dict(model.patch_params),
-                       "metrics": table}, handle, indent=2)
-            handle.write("\n")
+        write_json(json_out, {"contact_viz_version": __version__, "model": str(model_path.resolve()),
+                              "threshold": model.threshold, "patch_params": to_dict(model.patch_params),
+                              "metrics": table})
 
 
 @app.command()

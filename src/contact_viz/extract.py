@@ -9,7 +9,6 @@ the resolved configuration beside them.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 import warnings
@@ -23,7 +22,8 @@ import numpy as np
 
 from . import __version__
 from .atomic import atomic_write
-from .params import LabelParams, PatchParams, read_patch_params, to_dict
+from .jsonfile import read_json, write_json
+from .params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
 from .patch import PatchResult, compute_patch
 from .session import BadFrame, Frame, Session
 
@@ -175,9 +175,7 @@ def write_features(rows: Sequence[dict[str, object]], path: str | Path, config: 
         writer.writeheader()
         writer.writerows(rows)
     config_path = path.with_name(path.name + ".json")
-    with atomic_write(config_path) as handle:
-        json.dump(config, handle, indent=2)
-        handle.write("\n")
+    write_json(config_path, config)
     return path
 
 
@@ -196,11 +194,11 @@ def read_features_config(path: str | Path) -> tuple[PatchParams, str]:
     """The patch parameters and session name saved beside a features CSV (``<path>.json``, as
     :func:`write_features` writes it). A missing or malformed file is a ValueError naming it."""
     config_path = Path(path).with_name(Path(path).name + ".json")
-    if not config_path.exists():
-        raise ValueError(f"{config_path}: missing; a features CSV needs the configuration `extract` writes beside it")
-    params = read_patch_params(config_path)
+    config = read_json(config_path, PATCH_PARAMS_EXPECTED,
+                       missing="missing; a features CSV needs the configuration `extract` writes beside it")
+    params = patch_params_from_json(config, config_path)
     try:
-        name = json.loads(config_path.read_text())["session"]["name"]
+        name = config["session"]["name"]
     except (KeyError, TypeError) as exc:
         raise ValueError(f"{config_path}: expected the session's name at session.name ({exc!r})") from None
     if not isinstance(name, str) or not name:

@@ -6,7 +6,6 @@ patch and label parameters the features were computed with, and the package vers
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__
-from .atomic import atomic_write
+from .jsonfile import read_json, write_json
 from .hmm import LosoEnsemble
 from .params import LabelParams, PatchParams, from_dict, to_dict
 
@@ -73,21 +72,15 @@ def model_to_dict(model: ContactModel) -> dict[str, Any]:
 def save_model(model: ContactModel, path: str | Path) -> Path:
     """Write ``model`` to ``path`` as indented JSON, atomically."""
     path = Path(path)
-    with atomic_write(path) as handle:
-        json.dump(model_to_dict(model), handle, indent=1)
-        handle.write("\n")
+    write_json(path, model_to_dict(model), indent=1)
     return path
 
 
 def load_model(path: str | Path) -> ContactModel:
     """Read a model.json; any problem is one ValueError naming the file and what was expected."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: model file not found (make one with `contact-viz fit`)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: expected a contact-viz model.json ({exc})") from None
+    data = read_json(path, "expected a contact-viz model.json",
+                     missing="model file not found (make one with `contact-viz fit`)")
     if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: expected a contact-viz model.json with \"format\": \"{MODEL_FORMAT}\"")
     try:

@@ -7,12 +7,14 @@ with every result, so a result can always be traced back to the parameters that 
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+from .jsonfile import read_json
+
 T = TypeVar("T")
+PATCH_PARAMS_EXPECTED = 'expected a JSON object of PatchParams fields or {"patch_params": {...}}'
 
 
 def to_dict(params: Any) -> dict[str, Any]:
@@ -23,16 +25,16 @@ def to_dict(params: Any) -> dict[str, Any]:
 def read_patch_params(path: str | Path) -> "PatchParams":
     """PatchParams from a JSON file: an object of PatchParams fields, or {"patch_params": {...}}
     (as grid_search.py and features.csv.json write it). Any problem is one ValueError naming the file."""
-    path = Path(path)
-    expected = "expected a JSON object of PatchParams fields or {\"patch_params\": {...}}"
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: {expected} ({exc})") from None
+    return patch_params_from_json(read_json(path, PATCH_PARAMS_EXPECTED), path)
+
+
+def patch_params_from_json(data: Any, path: str | Path) -> "PatchParams":
+    """PatchParams from the parsed JSON ``data`` of the file ``path``, in either form
+    :func:`read_patch_params` reads; any problem is one ValueError naming the file."""
     if isinstance(data, dict) and "patch_params" in data:
         data = data["patch_params"]
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: {expected}")
+        raise ValueError(f"{path}: {PATCH_PARAMS_EXPECTED}")
     try:
         return from_dict(PatchParams, data)
     except (TypeError, ValueError) as exc:

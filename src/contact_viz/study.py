@@ -15,11 +15,10 @@ sessions folder, test sessions in table order:
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from .atomic import atomic_write
+from .jsonfile import read_json, write_json
 
 CATEGORIES = ("same phantom and task", "new phantom", "new phantom and task")  # test session categories, paper order
 
@@ -43,12 +42,7 @@ class Split:
 def read_split(path: Path) -> Split:
     """Read and check a split file; any problem is one ValueError naming the file and what was expected."""
     expected = ('expected JSON {"train": [session, ...], "test": [{"session": ..., "category": ...}, ...]}')
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: split file not found; {expected}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: {expected} ({exc})") from None
+    data = read_json(path, expected, missing=f"split file not found; {expected}")
     if not isinstance(data, dict) or set(data) != {"train", "test"}:
         found = sorted(data) if isinstance(data, dict) else type(data).__name__
         raise ValueError(f"{path}: {expected}; found {found}")
@@ -76,6 +70,4 @@ def read_split(path: Path) -> Split:
 def write_split(path: Path, split: Split) -> None:
     """Write ``split`` as a split file (atomically), in the form :func:`read_split` reads."""
     data = {"train": list(split.train), "test": [{"session": e.session, "category": e.category} for e in split.test]}
-    with atomic_write(path) as handle:
-        json.dump(data, handle, indent=2)
-        handle.write("\n")
+    write_json(path, data)

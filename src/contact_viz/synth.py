@@ -21,7 +21,6 @@ camera sits at (+baseline, 0, 0) with the same orientation, so true disparity = 
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 import tempfile
@@ -35,6 +34,7 @@ import numpy as np
 from PIL import Image
 
 from contact_viz.atomic import atomic_write
+from contact_viz.jsonfile import write_json
 from contact_viz.params import to_dict
 
 PHANTOMS: tuple[str, ...] = ("cup", "kidney", "liver", "glove")
@@ -1474,6 +1474,4 @@ def _render_session(out_dir: Path, name: str, params: SynthParams,
         "fps": params.fps,
         "generator": to_dict(params),
     }
-    with atomic_write(out_dir / "session.json") as f:
-        json.dump(session, f, indent=2)
-        f.write("\n")
+    write_json(out_dir / "session.json", session)
