@@ -20,16 +20,17 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
 
-# Re-install only when pyproject.toml changed since the last successful install.
+# Re-install only when the build inputs changed since the last successful install (the compiled
+# kernels of contact_viz.patch are built by that install, from setup.py and the .pyx file).
 STAMP="$VENV/.contact-viz-installed"
-WANT="$(sha256sum "$ROOT/pyproject.toml" | cut -d' ' -f1)"
+WANT="$(cat "$ROOT/pyproject.toml" "$ROOT/setup.py" "$ROOT"/src/contact_viz/*.pyx | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   echo "[bootstrap] installing packages into $VENV (first run takes about a minute)" >&2
   # The CPU build of torch first: a bare `torch` requirement would pull several GB of CUDA packages.
   "$VENV/bin/pip" install -q torch==2.13.0 2>&1 | grep -v 'is ignored' >&2 || true
   "$VENV/bin/python" -c "import torch" 
   "$VENV/bin/pip" install -q -e "$ROOT[test]" 2>&1 | grep -v 'is ignored' >&2 || true
-  "$VENV/bin/python" -c "import contact_viz, open3d, rerun, cv2"
+  "$VENV/bin/python" -c "import contact_viz._patch_kernels, open3d, rerun, cv2"
   echo "$WANT" > "$STAMP"
 fi
 export PATH="$VENV/bin:$PATH"

@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +165,40 @@ def test_read_features_config_round_trip_and_errors(tmp_path):
     (tmp_path / "features.csv.json").unlink()
     with pytest.raises(ValueError, match=r"features.csv.json: missing"):
         read_features_config(path)
+
+
+def test_processes_give_the_same_rows_and_warnings(cup_session, tmp_path):
+    broken = tmp_path / "broken"
+    shutil.copytree(cup_session, broken)
+    stems = sorted(p.stem for p in (broken / "left").iterdir())
+    (broken / "depth" / f"{stems[30]}.npy").unlink()
+    session = open_session(broken)
+    with pytest.warns(BadFrameWarning) as serial_warnings:
+        serial = extract_features(session)
+    # A slow progress callback keeps the caller busy, so that the spawned worker takes chunks too.
+    done = []
+    with pytest.warns(BadFrameWarning) as shared_warnings:
+        shared = extract_features(session, processes=2, progress=lambda n: (done.append(n), time.sleep(0.05)))
+    assert shared == serial
+    assert [str(w.message) for w in shared_warnings] == [str(w.message) for w in serial_warnings]
+    assert done[-1] == len(session)
+    with pytest.warns(BadFrameWarning):
+        subset = extract_features(session, indices=[40, 3, 30], processes=2)
+    assert [r["frame"] for r in subset] == [stems[40], stems[3], stems[30]]
+    assert subset == [serial[40], serial[3], serial[30]]
+    with pytest.raises(IndexError, match="out of range"):
+        extract_features(session, indices=[0, 90], processes=2)
+
+
+def test_cli_extract_processes_option(cup_session, tmp_path):
+    outputs = []
+    for processes in ("1", "2"):
+        out = tmp_path / f"p{processes}.csv"
+        done = subprocess.run([*CLI, "extract", str(cup_session), "-o", str(out), "--processes", processes],
+                              capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        outputs.append(out.read_text())
+    assert outputs[0] == outputs[1]
+    done = subprocess.run([*CLI, "extract", str(cup_session), "-o", str(tmp_path / "x.csv"), "--processes", "0"],
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and "processes" in done.stderr

@@ -84,12 +84,17 @@ def extract(
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
     cache_dir: CacheDir = None,
+    processes: Annotated[Optional[int], typer.Option(
+        min=1, help="Processes to spread the frames over, this one included [default: the number of cores, "
+        "at most 8].")] = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
     from .errors import SessionError
-    from .extract import BadFrameWarning, extract_features, run_config, write_features
+    from .allocator import keep_freed_memory
+    from .extract import DEFAULT_PROCESSES, BadFrameWarning, extract_features, run_config, write_features
     from .session import open_session
 
+    keep_freed_memory()
     params, label_params = _resolve_params(params_file, contact_force)
     try:
         session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
@@ -104,7 +109,8 @@ def extract(
     with warnings.catch_warnings(record=True) as caught, _progress() as progress:
         warnings.simplefilter("always", BadFrameWarning)
         task = progress.add_task(f"extract {session.name}", total=len(session))
-        rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done))
+        rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
+                                processes=processes or DEFAULT_PROCESSES)
     for w in caught:
         if issubclass(w.category, BadFrameWarning):
             bad.append(str(w.message))

@@ -29,6 +29,8 @@ from .session import BadFrame, Frame, Session
 
 REASON_BAD_FRAME = "bad_frame"
 DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # frames whose patches are computed at once (threads)
+DEFAULT_PROCESSES = min(8, os.cpu_count() or 1)  # processes `contact-viz extract` spreads the frames over
+CHUNK_FRAMES = 8  # frames a process claims at a time when the frames are spread over processes
 
 # Columns of features.csv, in order. Units are in the names; see the README for each.
 FEATURE_COLUMNS = (
@@ -138,22 +140,58 @@ def feature_row(session: Session, result: FrameResult) -> dict[str, object]:
     return {c: row.get(c, "") for c in FEATURE_COLUMNS}
 
 
+@dataclass(frozen=True)
+class _FeatureRowsTask:
+    """The features rows of positions ``lo`` to ``hi - 1`` of ``indices``, one frame at a time
+    (a :class:`contact_viz.workers.ChunkTask`: pickled once into each worker process)."""
+
+    session: Session
+    params: PatchParams
+    indices: tuple[int, ...]
+
+    def __call__(self, lo: int, hi: int) -> list[dict[str, object]]:
+        rows = []
+        for index in self.indices[lo:hi]:
+            frame = self.session.load_frame(index)
+            patch = None if isinstance(frame, BadFrame) else compute_patch(frame.depth_m, frame.tool_mask, self.params)
+            rows.append(feature_row(self.session, FrameResult(frame, patch)))
+        return rows
+
+
 def extract_features(
     session: Session,
     params: PatchParams = PatchParams(),
     *,
     indices: Sequence[int] | None = None,
     progress: Callable[[int], None] | None = None,
+    processes: int = 1,
 ) -> list[dict[str, object]]:
-    """One features row per frame of ``session`` (bad frames included, with reason ``bad_frame``).
+    """One features row per frame of ``session`` (bad frames included, with reason ``bad_frame``,
+    and a :class:`BadFrameWarning` each).
 
-    ``progress`` is called with the number of frames done after each frame.
+    ``progress`` is called with the number of frames done. With ``processes`` > 1 the frames are
+    spread over this process and ``processes - 1`` spawned ones (see :mod:`contact_viz.workers`:
+    threads cannot use more than about one core for this work); the rows are the same.
     """
-    rows = []
-    for done, result in enumerate(iter_frame_results(session, params, indices=indices), start=1):
-        rows.append(feature_row(session, result))
-        if progress is not None:
-            progress(done)
+    if processes == 1:
+        rows = []
+        for done, result in enumerate(iter_frame_results(session, params, indices=indices), start=1):
+            rows.append(feature_row(session, result))
+            if progress is not None:
+                progress(done)
+        return rows
+    from .allocator import keep_freed_memory
+    from .workers import run_chunks
+
+    order = tuple(range(len(session))) if indices is None else tuple(int(i) for i in indices)
+    bad = [i for i in order if not 0 <= i < len(session)]
+    if bad:
+        raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(session)} frames")
+    rows = run_chunks(_FeatureRowsTask(session, params, order), len(order), chunk_size=CHUNK_FRAMES,
+                      processes=processes, progress=progress, worker_setup=keep_freed_memory)
+    for row in rows:
+        if row["reason"] == REASON_BAD_FRAME:
+            warnings.warn(f"frame {row['frame']} skipped: {row['detail']}", BadFrameWarning, stacklevel=2)
     return rows
 
 

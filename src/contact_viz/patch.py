@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from . import _patch_kernels as _kernels
 from .params import PatchParams
 
 # Class ids of the layer image (see PatchResult.layer_ids); shared with the viewer and figures.
@@ -212,24 +213,6 @@ def _shaft_width_px(tool_u8: np.ndarray, row_phase: int, col_phase: int) -> floa
     return 2.0 * _max_distance_to_background(tool_u8) - 1.0
 
 
-def _window_corners(shape: tuple[int, int], ys: np.ndarray, xs: np.ndarray, half: int) -> np.ndarray:
-    """(4, N) flat indices into an (h+1, w+1) integral image of the corners (y1x1, y0x1, y1x0, y0x0)
-    of the (2*half+1)^2 windows centred at (ys, xs), clipped to the (h, w) array."""
-    h, w = shape
-    stride = w + 1
-    y0 = np.clip(ys - half, 0, h) * stride
-    y1 = np.clip(ys + half + 1, 0, h) * stride
-    x0 = np.clip(xs - half, 0, w)
-    x1 = np.clip(xs + half + 1, 0, w)
-    return np.stack([y1 + x1, y0 + x1, y1 + x0, y0 + x0])
-
-
-def _box_sums(integral: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """Window sums of an (h+1, w+1) integral image (cv2.integral layout) at ``_window_corners``."""
-    a, b, c, d = integral.ravel().take(corners)
-    return a - b - c + d
-
-
 def _empty_result(shape: tuple[int, int], reason: str, layer_ids: np.ndarray | None = None,
                   shaft_width_px: float = 0.0, band_w: float = 0.0) -> PatchResult:
     empty_i = np.zeros((0, 2), np.int64)
@@ -252,9 +235,10 @@ class _Layers:
     crop_shape: tuple[int, int]
     layer_ids: np.ndarray  # (H, W) uint8, full frame
     depth_c: np.ndarray  # (h, w) float32 or float64 crop (a view) of the depth, m
-    by: np.ndarray  # (N,) band pixel rows in the crop, row-major order
+    band_flat: np.ndarray  # (N,) int64 flat crop indices of the band pixels, row-major order
+    by: np.ndarray  # (N,) band pixel rows in the crop
     bx: np.ndarray  # (N,) band pixel columns in the crop
-    band_valid: np.ndarray  # (N,) bool: valid depth at the band pixel
+    band_valid: np.ndarray  # (N,) uint8: 1 where the band pixel's depth is valid
     tool_sum_int: np.ndarray  # (h+1, w+1) integral of valid interior depth, m
     tool_cnt_int: np.ndarray  # (h+1, w+1) integral of the valid interior count
     shaft_width_px: float
@@ -267,26 +251,25 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     shape = depth_m.shape
     height, width = shape
     tool = tool_mask if tool_mask.dtype == np.bool_ else tool_mask != 0
+    tool_full_u8 = np.ascontiguousarray(tool).view(np.uint8)
 
-    rows = np.flatnonzero(tool.any(axis=1))
-    if rows.size == 0:
+    bbox = _kernels.tool_bbox(tool_full_u8)
+    if bbox is None:
         return _empty_result(shape, REASON_EMPTY_MASK)
-    cols = np.flatnonzero(tool[rows[0]:rows[-1] + 1].any(axis=0))
+    row0, row1, col0, col1 = bbox
 
     # Work on the tool's bounding box padded by the band's reach: every interior, ring and band
     # pixel lies inside it, so windows clipped to it lose nothing that could contribute. At least
     # 2 px, so that an even row and column of background frame the tool (see _shaft_width_px).
     pad = max(int(np.ceil(params.outer_reach_px)) + 1, SHAFT_GRID_PX)
-    y0, y1 = int(max(rows[0] - pad, 0)), int(min(rows[-1] + pad + 1, height))
-    x0, x1 = int(max(cols[0] - pad, 0)), int(min(cols[-1] + pad + 1, width))
-    tool_c = tool[y0:y1, x0:x1]
+    y0, y1 = max(row0 - pad, 0), min(row1 + pad + 1, height)
+    x0, x1 = max(col0 - pad, 0), min(col1 + pad + 1, width)
+    tool_u8 = np.ascontiguousarray(tool_full_u8[y0:y1, x0:x1])
     depth_c = depth_m[y0:y1, x0:x1]
-    with np.errstate(invalid="ignore"):
-        valid_c = np.isfinite(depth_c) & (depth_c > 0)
-
-    tool_u8 = np.ascontiguousarray(tool_c).view(np.uint8)
+    if depth_c.dtype not in (np.float32, np.float64):
+        depth_c = depth_c.astype(np.float64)
     layer_ids = np.zeros(shape, np.uint8)
-    if tool_c.all():
+    if tool_u8.all():
         # No background anywhere near the tool: nothing to erode against and no band.
         layer_ids[y0:y1, x0:x1] = LAYER_INTERIOR
         return _empty_result(shape, REASON_NO_BAND, layer_ids)
@@ -298,57 +281,34 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     # background: erode's default border), dilation adds background within a radius of the tool.
     interior_u8 = cv2.erode(tool_u8, _disc(params.erosion_px))
     near_u8 = _dilate_disc(tool_u8, params.ring_px)  # tool + excluded ring outside it
-    band_u8 = _dilate_disc(tool_u8, params.ring_px + band_w) - near_u8
-    # The layers nest (interior in tool in near; band outside near), so their ids add up.
-    layer_c = near_u8 * np.uint8(LAYER_RING)
-    layer_c -= tool_u8 * np.uint8(LAYER_RING - LAYER_TOOL_EDGE)
-    layer_c -= interior_u8 * np.uint8(LAYER_TOOL_EDGE - LAYER_INTERIOR)
-    layer_c += band_u8 * np.uint8(LAYER_BAND)
-    layer_ids[y0:y1, x0:x1] = layer_c
-
-    band_flat = np.flatnonzero(band_u8)  # row-major
+    far_u8 = _dilate_disc(tool_u8, params.ring_px + band_w)  # ... + exterior band
+    band_flat, band_valid, tool_sum_int, tool_cnt_int = _kernels.fuse_layers(
+        tool_u8, interior_u8, near_u8, far_u8, depth_c, layer_ids[y0:y1, x0:x1],
+        LAYER_BACKGROUND, LAYER_INTERIOR, LAYER_TOOL_EDGE, LAYER_RING, LAYER_BAND,
+    )
     if band_flat.size == 0:
         return _empty_result(shape, REASON_NO_BAND, layer_ids, shaft_width, band_w)
-    by, bx = np.divmod(band_flat, band_u8.shape[1])
-    tool_w = interior_u8.view(np.bool_) & valid_c
+    by, bx = np.divmod(band_flat, tool_u8.shape[1])
     return _Layers(
-        shape=shape, origin_yx=(y0, x0), crop_shape=tool_c.shape, layer_ids=layer_ids, depth_c=depth_c,
-        by=by, bx=bx, band_valid=valid_c[by, bx],
-        tool_sum_int=cv2.integral(np.where(tool_w, depth_c, 0), sdepth=cv2.CV_64F),
-        tool_cnt_int=cv2.integral(tool_w.astype(np.uint8), sdepth=cv2.CV_32S),
+        shape=shape, origin_yx=(y0, x0), crop_shape=tool_u8.shape, layer_ids=layer_ids, depth_c=depth_c,
+        band_flat=band_flat, by=by, bx=bx, band_valid=band_valid,
+        tool_sum_int=tool_sum_int, tool_cnt_int=tool_cnt_int,
         shaft_width_px=shaft_width, band_width_px=band_w,
     )
 
 
 def _band_distances(layers: _Layers, n1: int, tau_tool: int) -> tuple[np.ndarray, np.ndarray]:
     """d(p) at every band pixel and the mean interior depth of N1(p) behind it, (N,) each, NaN where undefined."""
-    by, bx = layers.by, layers.bx
-    corners = _window_corners(layers.crop_shape, by, bx, n1 // 2)
-    tool_cnt = _box_sums(layers.tool_cnt_int, corners)
-    tool_sum = _box_sums(layers.tool_sum_int, corners)
-    has_tool = tool_cnt >= tau_tool
-    has_d = layers.band_valid & has_tool
-    tool_mean = np.full(by.size, np.nan)
-    tool_mean[has_tool] = tool_sum[has_tool] / tool_cnt[has_tool]
-    band_d = np.full(by.size, np.nan)
-    band_d[has_d] = layers.depth_c[by[has_d], bx[has_d]].astype(np.float64) - tool_mean[has_d]
-    return band_d, tool_mean
+    return _kernels.band_distances(layers.tool_sum_int, layers.tool_cnt_int, layers.band_flat, layers.band_valid,
+                                   layers.depth_c, n1 // 2, tau_tool)
 
 
 class _Scores:
-    """Box sums of |d| and of the count of defined d around every band pixel, for one N2; internal."""
+    """Window sums of |d| and of the count of defined d around every band pixel, for one N2; internal."""
 
     def __init__(self, layers: _Layers, band_d: np.ndarray, n2: int) -> None:
-        by, bx = layers.by, layers.bx
-        has_d = np.isfinite(band_d)
-        abs_d_c = np.zeros(layers.crop_shape, np.float64)
-        abs_d_c[by[has_d], bx[has_d]] = np.abs(band_d[has_d])
-        has_d_c = np.zeros(layers.crop_shape, np.uint8)
-        has_d_c[by[has_d], bx[has_d]] = 1
         self.half2 = n2 // 2
-        corners = _window_corners(layers.crop_shape, by, bx, self.half2)
-        self.count = _box_sums(cv2.integral(has_d_c, sdepth=cv2.CV_32S), corners)
-        self.total = _box_sums(cv2.integral(abs_d_c, sdepth=cv2.CV_64F), corners)
+        self.count, self.total = _kernels.band_window_sums(layers.band_flat, band_d, *layers.crop_shape, self.half2)
 
     def score(self, tau_patch: int) -> np.ndarray:
         """s(p) at every band pixel, (N,), NaN where fewer than ``tau_patch`` distances are defined."""

@@ -50,6 +50,7 @@ from PIL import Image
 
 from contact_viz.calibration import Calibration, Rectification, StereoCalibration, read_calibration
 from contact_viz.errors import SessionError
+from contact_viz.palette_png import is_palette_png, palette_indices
 from contact_viz.params import LabelParams
 from contact_viz.stereo import DEPTH_METHODS, DisparityCache, SGBMParams, disparity_to_depth
 
@@ -78,9 +79,6 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # accepted left/right image file typ
 MM_PER_M = 1000.0  # millimetres per metre (uint16 depth PNGs hold millimetres)
 DEPTH_SOURCES = ("depth", "disparity", "sgbm")  # where a session's depth can come from, in preference order
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_PNG_COLOR_TYPE_OFFSET = 25  # byte offset of the IHDR colour-type field in a PNG file
-_PNG_PALETTE = 3  # IHDR colour type of a palettized PNG
 _SESSION_JSON_KEYS = ("name", "phantom", "task", "fps")
 # Exceptions that mean "this file could not be decoded" (PIL raises SyntaxError for some broken PNGs).
 _DECODE_ERRORS = (OSError, ValueError, EOFError, SyntaxError, zlib.error, cv2.error)
@@ -539,29 +537,23 @@ def _read_bytes(path: Path, what: str) -> np.ndarray:
     return data
 
 
-def _is_palette_png(data: np.ndarray) -> bool:
-    """Whether the PNG bytes ``data`` declare a palettized image (IHDR colour type 3)."""
-    return (
-        data.size > _PNG_COLOR_TYPE_OFFSET
-        and data[: len(_PNG_SIGNATURE)].tobytes() == _PNG_SIGNATURE
-        and int(data[_PNG_COLOR_TYPE_OFFSET]) == _PNG_PALETTE
-    )
-
-
 def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
     """Decode a tool mask PNG to (H, W) bool, True = tool.
 
     Palettized (SAM2/DAVIS) and single-channel masks: pixel value = object id, 0 = background;
     tool = nonzero, or == ``object_id`` when given. Multi-channel masks: tool = any colour channel
-    nonzero (``object_id`` is then an error). Palettized PNGs go through PIL, which returns the
-    palette indices (OpenCV would expand them to colours); the rest through OpenCV.
+    nonzero (``object_id`` is then an error). Palettized PNGs are decoded to their palette
+    indices (contact_viz.palette_png; PIL for bit depths other than 8), the rest by OpenCV.
     """
     what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
     data = _read_bytes(path, what)
     try:
-        if _is_palette_png(data):
-            with Image.open(io.BytesIO(data.tobytes())) as image:
-                ids = np.asarray(image)
+        raw = data.tobytes()
+        if is_palette_png(raw):
+            ids = palette_indices(raw)
+            if ids is None:
+                with Image.open(io.BytesIO(raw)) as image:
+                    ids = np.asarray(image)
         else:
             ids = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except _DECODE_ERRORS as exc:

@@ -1,0 +1,306 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Compiled inner loops of the minimum-distance patch (contact_viz.patch).
+
+Each kernel does in one pass over its pixels what would otherwise be a chain of whole-array
+NumPy passes (compare, mask, scatter, integral, gather), each allocating a crop-sized
+temporary. They are pure functions over arrays, called by contact_viz.patch only; the
+formulas are documented there, and tests/test_patch_kernels.py checks each kernel against
+the NumPy/OpenCV expression it replaces.
+
+Integral images use OpenCV's layout and summation order (cv2.integral): shape (h+1, w+1),
+row 0 and column 0 zero, I[y+1, x+1] = I[y, x+1] + (sum of row y up to column x).
+"""
+
+import numpy as np
+
+from libc.math cimport NAN, isfinite
+from libc.string cimport memcpy
+
+ctypedef fused depth_t:
+    float
+    double
+
+
+cdef inline Py_ssize_t _first_nonzero(const unsigned char* row, Py_ssize_t width) noexcept nogil:
+    """Index of the first nonzero byte of ``row[:width]``, or ``width``; 64, then 8 bytes at a time."""
+    cdef Py_ssize_t x = 0
+    cdef unsigned long long word
+    cdef unsigned long long block[8]
+    while x + 64 <= width:
+        memcpy(block, row + x, 64)
+        if (block[0] | block[1] | block[2] | block[3] | block[4] | block[5] | block[6] | block[7]) != 0:
+            break
+        x += 64
+    while x + 8 <= width:
+        memcpy(&word, row + x, 8)
+        if word != 0:
+            break
+        x += 8
+    while x < width and row[x] == 0:
+        x += 1
+    return x
+
+
+cdef inline Py_ssize_t _last_nonzero(const unsigned char* row, Py_ssize_t width) noexcept nogil:
+    """Index of the last nonzero byte of ``row[:width]``, or -1; 64, then 8 bytes at a time."""
+    cdef Py_ssize_t x = width
+    cdef unsigned long long word
+    cdef unsigned long long block[8]
+    while x >= 64:
+        memcpy(block, row + x - 64, 64)
+        if (block[0] | block[1] | block[2] | block[3] | block[4] | block[5] | block[6] | block[7]) != 0:
+            break
+        x -= 64
+    while x >= 8:
+        memcpy(&word, row + x - 8, 8)
+        if word != 0:
+            break
+        x -= 8
+    x -= 1
+    while x >= 0 and row[x] == 0:
+        x -= 1
+    return x
+
+
+def tool_bbox(const unsigned char[:, ::1] tool):
+    """Inclusive bounds ``(row0, row1, col0, col1)`` of the nonzero pixels of ``tool``
+    ((H, W) uint8, C-contiguous; a bool array viewed as uint8), or None when there are none.
+
+    Each row is searched from each end for its first nonzero pixel, 8 bytes at a time.
+    """
+    cdef Py_ssize_t height = tool.shape[0], width = tool.shape[1]
+    cdef Py_ssize_t y, x, row0 = -1, row1 = -1, col0 = width, col1 = -1
+    cdef const unsigned char* row
+    if height == 0 or width == 0:
+        return None
+    with nogil:
+        for y in range(height):
+            row = &tool[y, 0]
+            x = _first_nonzero(row, width)
+            if x == width:
+                continue
+            if row0 < 0:
+                row0 = y
+            row1 = y
+            if x < col0:
+                col0 = x
+            x = _last_nonzero(row, width)
+            if x > col1:
+                col1 = x
+    if row0 < 0:
+        return None
+    return int(row0), int(row1), int(col0), int(col1)
+
+
+def fuse_layers(
+    const unsigned char[:, ::1] tool,
+    const unsigned char[:, ::1] interior,
+    const unsigned char[:, ::1] near,
+    const unsigned char[:, ::1] far,
+    const depth_t[:, :] depth_m,
+    unsigned char[:, :] layer_ids,
+    unsigned char id_background,
+    unsigned char id_interior,
+    unsigned char id_tool_edge,
+    unsigned char id_ring,
+    unsigned char id_band,
+):
+    """One pass over the (h, w) crop that labels the layers and integrates the tool depth.
+
+    Inputs are 0/1 uint8 masks (tool, eroded interior, tool dilated by the ring, tool dilated
+    by ring + band) and the depth crop ``depth_m`` (float32/float64, m; valid = finite and > 0;
+    rows contiguous). Writes the layer id of every pixel into ``layer_ids`` (rows contiguous):
+    interior, tool edge (tool but not interior), ring (near but not tool), band (far but not
+    near) or background. The masks must nest (interior in tool in near in far).
+
+    Returns ``(band_flat, band_valid, tool_sum_int, tool_cnt_int)``: (N,) int64 row-major flat
+    crop indices of the band pixels; (N,) uint8 1 where their depth is valid; the (h+1, w+1)
+    float64 integral of the valid interior depth, m; the (h+1, w+1) int32 integral of the
+    valid interior count.
+    """
+    cdef Py_ssize_t height = tool.shape[0], width = tool.shape[1]
+    cdef Py_ssize_t y, x, n_band = 0
+    cdef double d, row_sum
+    cdef int row_cnt, valid, take, code
+    cdef unsigned char ids[5]
+    cdef const unsigned char *tool_row
+    cdef const unsigned char *interior_row
+    cdef const unsigned char *near_row
+    cdef const unsigned char *far_row
+    cdef const depth_t *depth_row
+    cdef unsigned char *layer_row
+    cdef double *sum_above
+    cdef double *sum_row
+    cdef int *cnt_above
+    cdef int *cnt_row
+    _check_same_shape(tool, interior, near, far, depth_m, layer_ids)
+    ids[0], ids[1], ids[2], ids[3], ids[4] = id_background, id_band, id_ring, id_tool_edge, id_interior
+    if depth_m.strides[1] != sizeof(depth_t) or layer_ids.strides[1] != 1:
+        raise ValueError("depth_m and layer_ids must be contiguous along their rows")
+    band_flat_arr = np.empty(height * width, np.int64)
+    band_valid_arr = np.empty(height * width, np.uint8)
+    tool_sum_arr = np.empty((height + 1, width + 1), np.float64)
+    tool_cnt_arr = np.empty((height + 1, width + 1), np.int32)
+    cdef long long[::1] band_flat = band_flat_arr
+    cdef unsigned char[::1] band_valid = band_valid_arr
+    cdef double[:, ::1] tool_sum = tool_sum_arr
+    cdef int[:, ::1] tool_cnt = tool_cnt_arr
+    with nogil:
+        for x in range(width + 1):
+            tool_sum[0, x] = 0.0
+            tool_cnt[0, x] = 0
+        for y in range(height):
+            tool_row = &tool[y, 0]
+            interior_row = &interior[y, 0]
+            near_row = &near[y, 0]
+            far_row = &far[y, 0]
+            depth_row = &depth_m[y, 0]
+            layer_row = &layer_ids[y, 0]
+            sum_above = &tool_sum[y, 0]
+            sum_row = &tool_sum[y + 1, 0]
+            cnt_above = &tool_cnt[y, 0]
+            cnt_row = &tool_cnt[y + 1, 0]
+            sum_row[0] = 0.0
+            cnt_row[0] = 0
+            row_sum = 0.0
+            row_cnt = 0
+            for x in range(width):
+                # The masks nest (interior in tool in near in far), so their sum is the layer.
+                code = interior_row[x] + tool_row[x] + near_row[x] + far_row[x]
+                layer_row[x] = ids[code]
+                d = depth_row[x]
+                valid = isfinite(d) and d > 0.0
+                take = valid and code == 4
+                row_sum += d if take else 0.0
+                row_cnt += take
+                if code == 1:
+                    band_flat[n_band] = y * width + x
+                    band_valid[n_band] = valid
+                    n_band += 1
+                sum_row[x + 1] = sum_above[x + 1] + row_sum
+                cnt_row[x + 1] = cnt_above[x + 1] + row_cnt
+    return band_flat_arr[:n_band].copy(), band_valid_arr[:n_band].copy(), tool_sum_arr, tool_cnt_arr
+
+
+def _check_same_shape(*arrays):
+    shapes = {(a.shape[0], a.shape[1]) for a in arrays}
+    if len(shapes) != 1:
+        raise ValueError(f"the arrays must all have the same (h, w) shape, got {sorted(shapes)}")
+
+
+def band_distances(
+    const double[:, ::1] tool_sum_int,
+    const int[:, ::1] tool_cnt_int,
+    const long long[::1] band_flat,
+    const unsigned char[::1] band_valid,
+    const depth_t[:, :] depth_m,
+    Py_ssize_t half,
+    int tau_tool,
+):
+    """``d(p)`` and the mean valid interior depth of ``N1(p)`` at every band pixel.
+
+    ``tool_sum_int``/``tool_cnt_int``: the (h+1, w+1) integrals of :func:`fuse_layers`;
+    ``band_flat``/``band_valid``: its band pixels; ``depth_m``: the (h, w) depth crop, m;
+    ``half``: N1 // 2 (windows are clipped to the crop); ``tau_tool``: fewest interior pixels.
+    Returns ``(band_d, tool_mean)``, (N,) float64 m each: tool_mean is NaN where N1(p) holds
+    fewer than ``tau_tool`` valid interior pixels, band_d also where p's own depth is invalid.
+    """
+    cdef Py_ssize_t height = tool_sum_int.shape[0] - 1, width = tool_sum_int.shape[1] - 1
+    cdef Py_ssize_t n = band_flat.shape[0], i, y, x, y0, y1, x0, x1
+    cdef int count
+    cdef double mean
+    band_d_arr = np.empty(n, np.float64)
+    tool_mean_arr = np.empty(n, np.float64)
+    cdef double[::1] band_d = band_d_arr
+    cdef double[::1] tool_mean = tool_mean_arr
+    with nogil:
+        for i in range(n):
+            y = band_flat[i] // width
+            x = band_flat[i] - y * width
+            y0 = y - half if y > half else 0
+            y1 = y + half + 1 if y + half + 1 < height else height
+            x0 = x - half if x > half else 0
+            x1 = x + half + 1 if x + half + 1 < width else width
+            count = tool_cnt_int[y1, x1] - tool_cnt_int[y0, x1] - tool_cnt_int[y1, x0] + tool_cnt_int[y0, x0]
+            if count < tau_tool:
+                tool_mean[i] = NAN
+                band_d[i] = NAN
+                continue
+            mean = (tool_sum_int[y1, x1] - tool_sum_int[y0, x1] - tool_sum_int[y1, x0] + tool_sum_int[y0, x0]) / count
+            tool_mean[i] = mean
+            band_d[i] = <double>depth_m[y, x] - mean if band_valid[i] else NAN
+    return band_d_arr, tool_mean_arr
+
+
+def band_window_sums(
+    const long long[::1] band_flat,
+    const double[::1] band_d,
+    Py_ssize_t height,
+    Py_ssize_t width,
+    Py_ssize_t half,
+):
+    """Sums over the (2*half+1)^2 window around every band pixel (clipped to the (height, width)
+    crop) of ``|d|`` and of the count of defined (finite) ``d``, over the band pixels.
+
+    ``band_flat``: (N,) int64 flat crop indices; ``band_d``: (N,) float64 m, NaN = undefined.
+    Returns ``(count, total)``: (N,) int32 and (N,) float64 m.
+    """
+    cdef Py_ssize_t n = band_flat.shape[0], i, y, x, y0, y1, x0, x1, next_flat
+    cdef double row_sum, value
+    cdef int row_cnt
+    cdef double *abs_above
+    cdef double *abs_row
+    cdef int *cnt_above
+    cdef int *cnt_row
+    if band_d.shape[0] != n:
+        raise ValueError(f"band_d has {band_d.shape[0]} values for {n} band pixels")
+    for i in range(1, n):
+        if band_flat[i] <= band_flat[i - 1]:
+            raise ValueError("band_flat must be strictly increasing (row-major order)")
+    if n and (band_flat[0] < 0 or band_flat[n - 1] >= height * width):
+        raise ValueError(f"band_flat must index a {height}x{width} crop")
+    abs_int_arr = np.empty((height + 1, width + 1), np.float64)
+    cnt_int_arr = np.empty((height + 1, width + 1), np.int32)
+    count_arr = np.empty(n, np.int32)
+    total_arr = np.empty(n, np.float64)
+    cdef double[:, ::1] abs_int = abs_int_arr
+    cdef int[:, ::1] cnt_int = cnt_int_arr
+    cdef int[::1] count = count_arr
+    cdef double[::1] total = total_arr
+    with nogil:
+        # Integrate |d| and the count of defined d (cv2.integral's order), taking each band
+        # pixel's value as the row-major sweep reaches it (band_flat is sorted).
+        for x in range(width + 1):
+            abs_int[0, x] = 0.0
+            cnt_int[0, x] = 0
+        i = 0
+        next_flat = band_flat[0] if n else -1
+        for y in range(height):
+            abs_above = &abs_int[y, 0]
+            abs_row = &abs_int[y + 1, 0]
+            cnt_above = &cnt_int[y, 0]
+            cnt_row = &cnt_int[y + 1, 0]
+            abs_row[0] = 0.0
+            cnt_row[0] = 0
+            row_sum = 0.0
+            row_cnt = 0
+            for x in range(width):
+                if y * width + x == next_flat:
+                    value = band_d[i]
+                    if isfinite(value):
+                        row_sum += value if value >= 0.0 else -value
+                        row_cnt += 1
+                    i += 1
+                    next_flat = band_flat[i] if i < n else -1
+                abs_row[x + 1] = abs_above[x + 1] + row_sum
+                cnt_row[x + 1] = cnt_above[x + 1] + row_cnt
+        for i in range(n):
+            y = band_flat[i] // width
+            x = band_flat[i] - y * width
+            y0 = y - half if y > half else 0
+            y1 = y + half + 1 if y + half + 1 < height else height
+            x0 = x - half if x > half else 0
+            x1 = x + half + 1 if x + half + 1 < width else width
+            count[i] = cnt_int[y1, x1] - cnt_int[y0, x1] - cnt_int[y1, x0] + cnt_int[y0, x0]
+            total[i] = abs_int[y1, x1] - abs_int[y0, x1] - abs_int[y1, x0] + abs_int[y0, x0]
+    return count_arr, total_arr

@@ -1,0 +1,124 @@
+"""workers.run_chunks: chunks of items shared between the caller and spawned worker processes."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import time
+from dataclasses import dataclass
+
+import pytest
+
+from contact_viz.workers import WorkerError, chunk_bounds, run_chunks
+
+
+@dataclass(frozen=True)
+class Squares:
+    """Results of items lo..hi-1: (item, item**2, pid of the process that computed it)."""
+
+    offset: int = 0
+
+    def __call__(self, lo: int, hi: int) -> list[tuple[int, int, int]]:
+        return [(i, (i + self.offset) ** 2, os.getpid()) for i in range(lo, hi)]
+
+
+@dataclass(frozen=True)
+class FailsInWorker:
+    """Raises in a worker; slow in the caller, so that a worker starts before the items run out."""
+
+    caller_pid: int
+
+    def __call__(self, lo: int, hi: int) -> list[int]:
+        if os.getpid() != self.caller_pid:
+            raise ArithmeticError(f"items {lo}..{hi - 1} are bad")
+        time.sleep(0.005)
+        return list(range(lo, hi))
+
+
+@dataclass(frozen=True)
+class DiesInWorker:
+    """Kills its own process in a worker (its claimed chunk is never delivered); slow in the caller."""
+
+    caller_pid: int
+
+    def __call__(self, lo: int, hi: int) -> list[int]:
+        if os.getpid() != self.caller_pid:
+            os.kill(os.getpid(), signal.SIGKILL)
+        time.sleep(0.005)
+        return [i * 10 for i in range(lo, hi)]
+
+
+@dataclass(frozen=True)
+class CallerFails:
+    caller_pid: int
+
+    def __call__(self, lo: int, hi: int) -> list[int]:
+        if os.getpid() == self.caller_pid and lo > 0:
+            raise KeyError("the caller's own error")
+        return list(range(lo, hi))
+
+
+def test_chunk_bounds():
+    assert chunk_bounds(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    assert chunk_bounds(8, 4) == [(0, 4), (4, 8)]
+    assert chunk_bounds(0, 4) == []
+    with pytest.raises(ValueError, match="chunk_size"):
+        chunk_bounds(10, 0)
+    with pytest.raises(ValueError, match="n_items"):
+        chunk_bounds(-1, 3)
+
+
+@pytest.mark.parametrize("processes, n_items, chunk", [(1, 23, 4), (2, 23, 4), (3, 50, 3), (2, 3, 8), (2, 0, 4)])
+def test_results_in_item_order(processes, n_items, chunk):
+    done = []
+    out = run_chunks(Squares(offset=1), n_items, chunk_size=chunk, processes=processes, progress=done.append)
+    assert [(i, sq) for i, sq, _ in out] == [(i, (i + 1) ** 2) for i in range(n_items)]
+    assert done == sorted(done) and (done[-1] == n_items if n_items else done == [])
+    assert multiprocessing.active_children() == []  # every worker was stopped and joined
+
+
+def test_work_is_shared_with_a_worker():
+    # Enough chunks that a spawned worker, once started, takes some of them.
+    out = run_chunks(SlowSquares(), 400, chunk_size=2, processes=2)
+    pids = {pid for _, _, pid in out}
+    assert os.getpid() in pids and len(pids) == 2
+
+
+@dataclass(frozen=True)
+class SlowSquares(Squares):
+    def __call__(self, lo: int, hi: int):
+        time.sleep(0.005)
+        return super().__call__(lo, hi)
+
+
+def test_single_process_starts_nothing():
+    out = run_chunks(Squares(), 10, chunk_size=3, processes=1)
+    assert {pid for _, _, pid in out} == {os.getpid()}
+
+
+def test_worker_exception_is_raised_in_caller():
+    with pytest.raises(WorkerError, match=r"(?s)a worker process failed on items \d+\.\.\d+:.*ArithmeticError: items"):
+        run_chunks(FailsInWorker(os.getpid()), 400, chunk_size=2, processes=2)
+    assert multiprocessing.active_children() == []
+
+
+def test_killed_worker_leaves_its_chunk_to_the_caller():
+    out = run_chunks(DiesInWorker(os.getpid()), 300, chunk_size=2, processes=2)
+    assert out == [i * 10 for i in range(300)]
+    assert multiprocessing.active_children() == []
+
+
+def test_caller_exception_stops_workers():
+    with pytest.raises(KeyError, match="caller's own error"):
+        run_chunks(CallerFails(os.getpid()), 100, chunk_size=2, processes=3)
+    assert multiprocessing.active_children() == []
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="processes"):
+        run_chunks(Squares(), 5, chunk_size=2, processes=0)
+    with pytest.raises(ValueError, match="processes"):
+        run_chunks(Squares(), 5, chunk_size=2, processes=True)
+    with pytest.raises(ValueError, match="expected 2"):
+        run_chunks(lambda lo, hi: [0], 4, chunk_size=2, processes=1)
