@@ -109,6 +109,7 @@ def assert_matches_literal(depth, tool, params):
     fast = compute_patch(depth, tool, params)
     slow = literal_patch(depth.astype(np.float64), tool, params)
     assert fast.reason == slow["reason"]
+    assert fast.tool_area_px == int(np.count_nonzero(tool))
     if slow["reason"] == REASON_EMPTY_MASK:
         assert not fast.layer_ids.any()
         return

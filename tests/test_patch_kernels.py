@@ -96,7 +96,9 @@ def test_fuse_layers_against_numpy(dtype):
         depth[rng.random(shape) < 0.02] = -np.inf
         (interior, near, far), expected = layers_by_numpy(tool, depth)
         layer = np.full(shape, 99, np.uint8)
-        band_flat, band_valid, tool_sum, tool_cnt = kernels.fuse_layers(tool, interior, near, far, depth, layer, *IDS)
+        band_flat, band_valid, tool_sum, tool_cnt, area = kernels.fuse_layers(tool, interior, near, far, depth,
+                                                                             layer, *IDS)
+        assert area == tool.sum()
         np.testing.assert_array_equal(layer, expected["layer"])
         np.testing.assert_array_equal(band_flat, expected["band_flat"])
         np.testing.assert_array_equal(band_valid, expected["band_valid"])
@@ -141,7 +143,8 @@ def test_band_distances_against_brute_force():
         depth[rng.random(shape) < 0.1] = np.nan
         (interior, near, far), _ = layers_by_numpy(tool, depth)
         layer = np.zeros(shape, np.uint8)
-        band_flat, band_valid, tool_sum, tool_cnt = kernels.fuse_layers(tool, interior, near, far, depth, layer, *IDS)
+        band_flat, band_valid, tool_sum, tool_cnt, _ = kernels.fuse_layers(tool, interior, near, far, depth, layer,
+                                                                          *IDS)
         band_d, tool_mean = kernels.band_distances(tool_sum, tool_cnt, band_flat, band_valid, depth, half, tau)
         taken = (interior == 1) & np.isfinite(depth)
         for i, flat in enumerate(band_flat):
@@ -185,3 +188,25 @@ def test_band_window_sums_errors():
         kernels.band_window_sums(np.array([1, 16], np.int64), np.zeros(2), 4, 4, 1)
     count, total = kernels.band_window_sums(np.zeros(0, np.int64), np.zeros(0), 4, 4, 1)
     assert count.shape == (0,) and total.shape == (0,)
+
+
+def test_window_members_against_brute_force():
+    rng = np.random.default_rng(5)
+    shape = (30, 41)
+    for half in (0, 1, 4, 8):
+        band_flat = np.flatnonzero(rng.random(shape) < 0.4)
+        band_d = rng.normal(0, 0.01, band_flat.size)
+        band_d[rng.random(band_flat.size) < 0.2] = np.nan
+        ys, xs = np.divmod(band_flat, shape[1])
+        for center in range(band_flat.size):
+            expected = np.flatnonzero(np.isfinite(band_d) & (np.abs(ys - ys[center]) <= half)
+                                      & (np.abs(xs - xs[center]) <= half))
+            np.testing.assert_array_equal(kernels.window_members(band_flat, band_d, shape[1], center, half), expected)
+
+
+def test_window_members_errors():
+    flat = np.array([1, 5, 9], np.int64)
+    with pytest.raises(IndexError):
+        kernels.window_members(flat, np.zeros(3), 4, 3, 1)
+    with pytest.raises(ValueError, match="values for"):
+        kernels.window_members(flat, np.zeros(2), 4, 0, 1)

@@ -113,13 +113,13 @@ def fuse_layers(
     interior, tool edge (tool but not interior), ring (near but not tool), band (far but not
     near) or background. The masks must nest (interior in tool in near in far).
 
-    Returns ``(band_flat, band_valid, tool_sum_int, tool_cnt_int)``: (N,) int64 row-major flat
-    crop indices of the band pixels; (N,) uint8 1 where their depth is valid; the (h+1, w+1)
-    float64 integral of the valid interior depth, m; the (h+1, w+1) int32 integral of the
-    valid interior count.
+    Returns ``(band_flat, band_valid, tool_sum_int, tool_cnt_int, tool_area)``: (N,) int64
+    row-major flat crop indices of the band pixels; (N,) uint8 1 where their depth is valid;
+    the (h+1, w+1) float64 integral of the valid interior depth, m; the (h+1, w+1) int32
+    integral of the valid interior count; the number of tool pixels.
     """
     cdef Py_ssize_t height = tool.shape[0], width = tool.shape[1]
-    cdef Py_ssize_t y, x, n_band = 0
+    cdef Py_ssize_t y, x, n_band = 0, n_tool = 0
     cdef double d, row_sum
     cdef int row_cnt, valid, take, code
     cdef unsigned char ids[5]
@@ -168,6 +168,7 @@ def fuse_layers(
                 # The masks nest (interior in tool in near in far), so their sum is the layer.
                 code = interior_row[x] + tool_row[x] + near_row[x] + far_row[x]
                 layer_row[x] = ids[code]
+                n_tool += code >= 3
                 d = depth_row[x]
                 valid = isfinite(d) and d > 0.0
                 take = valid and code == 4
@@ -179,7 +180,7 @@ def fuse_layers(
                     n_band += 1
                 sum_row[x + 1] = sum_above[x + 1] + row_sum
                 cnt_row[x + 1] = cnt_above[x + 1] + row_cnt
-    return band_flat_arr[:n_band].copy(), band_valid_arr[:n_band].copy(), tool_sum_arr, tool_cnt_arr
+    return band_flat_arr[:n_band].copy(), band_valid_arr[:n_band].copy(), tool_sum_arr, tool_cnt_arr, int(n_tool)
 
 
 def _check_same_shape(*arrays):
@@ -304,3 +305,46 @@ def band_window_sums(
             count[i] = cnt_int[y1, x1] - cnt_int[y0, x1] - cnt_int[y1, x0] + cnt_int[y0, x0]
             total[i] = abs_int[y1, x1] - abs_int[y0, x1] - abs_int[y1, x0] + abs_int[y0, x0]
     return count_arr, total_arr
+
+
+def window_members(
+    const long long[::1] band_flat,
+    const double[::1] band_d,
+    Py_ssize_t width,
+    Py_ssize_t center,
+    Py_ssize_t half,
+):
+    """Indices, in band order, of the band pixels with a defined (finite) ``d`` in the
+    (2*half+1)^2 window around band pixel ``center``.
+
+    ``band_flat``: (N,) int64 flat indices into a crop of ``width`` columns, strictly increasing
+    (row-major), so the window's rows are one contiguous run of band pixels, found by bisection;
+    ``band_d``: (N,) float64. Returns (M,) int64.
+    """
+    cdef Py_ssize_t n = band_flat.shape[0], lo, hi, mid, i, m = 0, cy, cx, x
+    cdef long long first
+    if band_d.shape[0] != n:
+        raise ValueError(f"band_d has {band_d.shape[0]} values for {n} band pixels")
+    if not 0 <= center < n:
+        raise IndexError(f"center {center} out of range for {n} band pixels")
+    members_arr = np.empty((2 * half + 1) * (2 * half + 1), np.int64)
+    cdef long long[::1] members = members_arr
+    with nogil:
+        cy = band_flat[center] // width
+        cx = band_flat[center] - cy * width
+        first = (cy - half) * width if cy > half else 0
+        lo, hi = 0, center  # the first band pixel at or after row cy - half
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if band_flat[mid] < first:
+                lo = mid + 1
+            else:
+                hi = mid
+        i = lo
+        while i < n and band_flat[i] // width <= cy + half:
+            x = band_flat[i] - (band_flat[i] // width) * width
+            if cx - half <= x <= cx + half and isfinite(band_d[i]):
+                members[m] = i
+                m += 1
+            i += 1
+    return members_arr[:m].copy()

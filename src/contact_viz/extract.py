@@ -135,7 +135,7 @@ def feature_row(session: Session, result: FrameResult) -> dict[str, object]:
         shaft_width_px=f"{patch.shaft_width_px:.2f}",
         band_width_px=f"{patch.band_width_px:.2f}",
         invalid_depth_fraction=_blank(round(patch.invalid_depth_fraction, 6)),
-        tool_area_px=int(np.count_nonzero(result.frame.tool_mask)),
+        tool_area_px=patch.tool_area_px,
     )
     return {c: row.get(c, "") for c in FEATURE_COLUMNS}
 

@@ -84,6 +84,7 @@ class PatchResult:
     distance_m : median ``d`` over the valid pixels of ``N2(p*)``, m, or NaN.
     signal : ``-log10(max(|distance_m|, eps))``, or NaN.
     shaft_width_px : visible shaft width, px (0 for an empty mask).
+    tool_area_px : tool pixels in the mask, px.
     band_width_px : width of the exterior band used, px.
     n_band, n_valid_distance, n_candidates : band pixels; those with ``d`` defined; those with ``s``.
     invalid_depth_fraction : share of band pixels with invalid depth, in [0, 1] (NaN if no band).
@@ -101,6 +102,7 @@ class PatchResult:
     distance_m: float
     signal: float
     shaft_width_px: float
+    tool_area_px: int
     band_width_px: float
     n_band: int
     n_valid_distance: int
@@ -214,14 +216,15 @@ def _shaft_width_px(tool_u8: np.ndarray, row_phase: int, col_phase: int) -> floa
 
 
 def _empty_result(shape: tuple[int, int], reason: str, layer_ids: np.ndarray | None = None,
-                  shaft_width_px: float = 0.0, band_w: float = 0.0) -> PatchResult:
+                  shaft_width_px: float = 0.0, band_w: float = 0.0, tool_area_px: int = 0) -> PatchResult:
     empty_i = np.zeros((0, 2), np.int64)
     empty_f = np.zeros(0, np.float64)
     return PatchResult(
         layer_ids=np.zeros(shape, np.uint8) if layer_ids is None else layer_ids,
         band_yx=empty_i, band_distance_m=empty_f, band_score_m=empty_f,
         center_xy=None, window_xyxy=None, tool_depth_m=float("nan"), score_m=float("nan"),
-        distance_m=float("nan"), signal=float("nan"), shaft_width_px=shaft_width_px, band_width_px=band_w,
+        distance_m=float("nan"), signal=float("nan"), shaft_width_px=shaft_width_px, tool_area_px=tool_area_px,
+        band_width_px=band_w,
         n_band=0, n_valid_distance=0, n_candidates=0, invalid_depth_fraction=float("nan"), reason=reason,
     )
 
@@ -242,6 +245,7 @@ class _Layers:
     tool_sum_int: np.ndarray  # (h+1, w+1) integral of valid interior depth, m
     tool_cnt_int: np.ndarray  # (h+1, w+1) integral of the valid interior count
     shaft_width_px: float
+    tool_area_px: int
     band_width_px: float
 
 
@@ -272,7 +276,7 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     if tool_u8.all():
         # No background anywhere near the tool: nothing to erode against and no band.
         layer_ids[y0:y1, x0:x1] = LAYER_INTERIOR
-        return _empty_result(shape, REASON_NO_BAND, layer_ids)
+        return _empty_result(shape, REASON_NO_BAND, layer_ids, tool_area_px=tool_u8.size)
 
     shaft_width = _shaft_width_px(tool_u8, -y0 % SHAFT_GRID_PX, -x0 % SHAFT_GRID_PX)
     band_w = band_width_px(shaft_width, params)
@@ -282,18 +286,18 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     interior_u8 = cv2.erode(tool_u8, _disc(params.erosion_px))
     near_u8 = _dilate_disc(tool_u8, params.ring_px)  # tool + excluded ring outside it
     far_u8 = _dilate_disc(tool_u8, params.ring_px + band_w)  # ... + exterior band
-    band_flat, band_valid, tool_sum_int, tool_cnt_int = _kernels.fuse_layers(
+    band_flat, band_valid, tool_sum_int, tool_cnt_int, tool_area = _kernels.fuse_layers(
         tool_u8, interior_u8, near_u8, far_u8, depth_c, layer_ids[y0:y1, x0:x1],
         LAYER_BACKGROUND, LAYER_INTERIOR, LAYER_TOOL_EDGE, LAYER_RING, LAYER_BAND,
     )
     if band_flat.size == 0:
-        return _empty_result(shape, REASON_NO_BAND, layer_ids, shaft_width, band_w)
+        return _empty_result(shape, REASON_NO_BAND, layer_ids, shaft_width, band_w, tool_area)
     by, bx = np.divmod(band_flat, tool_u8.shape[1])
     return _Layers(
         shape=shape, origin_yx=(y0, x0), crop_shape=tool_u8.shape, layer_ids=layer_ids, depth_c=depth_c,
         band_flat=band_flat, by=by, bx=bx, band_valid=band_valid,
         tool_sum_int=tool_sum_int, tool_cnt_int=tool_cnt_int,
-        shaft_width_px=shaft_width, band_width_px=band_w,
+        shaft_width_px=shaft_width, tool_area_px=tool_area, band_width_px=band_w,
     )
 
 
@@ -319,12 +323,10 @@ class _Scores:
 
 
 def _patch_window(layers: _Layers, band_d: np.ndarray, band_s: np.ndarray, half2: int) -> tuple[int, np.ndarray]:
-    """Index of p* (first minimum of s in row-major order) and the (N,) mask of the band pixels
-    with a defined d in its N2 window."""
+    """Index of p* (first minimum of s in row-major order) and the indices (M,) of the band
+    pixels with a defined d in its N2 window, in band order."""
     best = int(np.nanargmin(band_s))
-    by, bx = layers.by, layers.bx
-    cy, cx = int(by[best]), int(bx[best])
-    return best, np.isfinite(band_d) & (np.abs(by - cy) <= half2) & (np.abs(bx - cx) <= half2)
+    return best, _kernels.window_members(layers.band_flat, band_d, layers.crop_shape[1], best, half2)
 
 
 def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams = PatchParams()) -> PatchResult:
@@ -361,7 +363,8 @@ def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
             band_score_m=np.full(n_band, np.nan) if band_s is None else band_s,
             center_xy=center, window_xyxy=window, tool_depth_m=float(tool_depth), score_m=float(score),
             distance_m=float(distance), signal=float(distance_signal(distance, params.eps_m)),
-            shaft_width_px=layers.shaft_width_px, band_width_px=layers.band_width_px, n_band=n_band,
+            shaft_width_px=layers.shaft_width_px, tool_area_px=layers.tool_area_px,
+            band_width_px=layers.band_width_px, n_band=n_band,
             n_valid_distance=n_valid, n_candidates=n_cand,
             invalid_depth_fraction=float(1.0 - layers.band_valid.mean()), reason=reason,
         )
