@@ -202,3 +202,51 @@ def test_cli_extract_processes_option(cup_session, tmp_path):
     done = subprocess.run([*CLI, "extract", str(cup_session), "-o", str(tmp_path / "x.csv"), "--processes", "0"],
                           capture_output=True, text=True)
     assert done.returncode == 2 and "processes" in done.stderr
+
+
+def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
+    """extract's tasks read each depth map only in the rows around the tool; their rows equal
+    those computed on whole frames (empty masks, tools at the borders, odd rows, PNG depth,
+    unreadable files included)."""
+    import cv2
+
+    from contact_viz.extract import _FeatureRowsTask, feature_row
+
+    root, height, width = tmp_path / "s", 97, 131
+    rng = np.random.default_rng(7)
+    for sub in ("left", "masks", "depth"):
+        (root / sub).mkdir(parents=True)
+    (root / "K.txt").write_text("100 0 65 0 100 48 0 0 1\n0.005\n")
+    (root / "force.csv").write_text("frame,fx,fy,fz\n" + "".join(f"{i},0,0,{i % 4}\n" for i in range(12)))
+    yy, xx = np.mgrid[0:height, 0:width]
+    for i in range(12):
+        tool = np.zeros((height, width), np.uint8)
+        if i == 0:
+            pass  # empty mask
+        elif i == 1:
+            tool[: 20 + i] = 1  # touches the top border across the image
+        elif i == 2:
+            cv2.circle(tool, (60, height - 5), 25, 1, -1)  # touches the bottom border
+        else:
+            cv2.line(tool, (int(rng.integers(0, width)), int(rng.integers(0, height))),
+                     (int(rng.integers(0, width)), int(rng.integers(0, height))), 1, int(rng.integers(5, 25)))
+        cv2.imwrite(str(root / "masks" / f"{i}.png"), tool * 255)
+        depth = (0.08 + 0.005 * np.sin(xx / 9) + rng.normal(0, 0.0005, (height, width))).astype(np.float32)
+        depth[tool == 1] -= rng.uniform(0, 0.01)
+        depth[rng.random((height, width)) < 0.05] = np.nan
+        if i == 4:
+            cv2.imwrite(str(root / "depth" / f"{i}.png"), np.nan_to_num(depth * 1000).astype(np.uint16))
+        elif i != 9:  # frame 9 has no depth file
+            np.save(root / "depth" / f"{i}.npy", depth)
+        cv2.imwrite(str(root / "left" / f"{i}.png"), np.zeros((height, width, 3), np.uint8))
+    (root / "masks" / "6.png").write_bytes(b"broken")
+    session = open_session(root)
+    small = PatchParams(n1=11, n2=5, tau_tool=5, tau_patch=3, erosion_px=1.0, ring_px=1.0, band_min_px=1.0, band_max_px=2.0)
+    for params in (PatchParams(), small):
+        task = _FeatureRowsTask(session, params, tuple(range(len(session))))
+        with pytest.warns(BadFrameWarning):
+            whole = [feature_row(session, r) for r in iter_frame_results(session, params)]
+        assert task(0, len(session)) == whole
+        assert [r["reason"] for r in whole][:3] == ["empty_mask", whole[1]["reason"], whole[2]["reason"]]
+        assert whole[6]["reason"] == whole[9]["reason"] == REASON_BAD_FRAME
+        assert sum(r["distance_m"] != "" for r in whole) >= 5

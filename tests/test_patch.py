@@ -19,6 +19,7 @@ from contact_viz.patch import (
     REASON_NO_CANDIDATE,
     REASON_NO_TOOL_DEPTH,
     compute_patch,
+    patch_depth_rows,
 )
 
 SMALL = PatchParams(n1=11, n2=5, tau_tool=5, tau_patch=3, erosion_px=1.0, ring_px=1.0,
@@ -118,7 +119,7 @@ def assert_matches_literal(depth, tool, params):
         np.testing.assert_array_equal(fast.ring, slow["ring"])
         np.testing.assert_array_equal(fast.band, slow["band"])
         assert fast.band_width_px == pytest.approx(slow["band_w"], abs=1e-6)
-        assert fast.shaft_width_px == pytest.approx(slow["shaft"], abs=1e-4)
+        assert fast.shaft_width_px == pytest.approx(slow["shaft"], abs=1e-9)
         # d and s at every band pixel, NaN exactly where the literal version has none.
         for (y, x), d, s in zip(fast.band_yx, fast.band_distance_m, fast.band_score_m):
             key = (int(y), int(x))
@@ -258,7 +259,7 @@ def test_shaft_width_matches_literal_on_grid_edge_cases(seed):
         tool[0, 0], tool[-1, -1] = True, False
     depth = np.full((height, width), 0.1, np.float32)
     fast = compute_patch(depth, tool, SMALL)
-    assert fast.shaft_width_px == pytest.approx(literal_patch(depth.astype(np.float64), tool, SMALL)["shaft"], abs=1e-4)
+    assert fast.shaft_width_px == pytest.approx(literal_patch(depth.astype(np.float64), tool, SMALL)["shaft"], abs=1e-9)
 
 
 def test_shaft_width_worked_example():
@@ -350,3 +351,40 @@ def test_disc_dilation_by_rectangles_equals_disc_kernel(radius_px):
     mask = (rng.random((60, 70)) < 0.02).astype(np.uint8)
     mask[20:30, 0:40] = 1  # a shaft touching the border
     np.testing.assert_array_equal(_dilate_disc(mask, radius_px), cv2.dilate(mask, _disc(radius_px)))
+
+
+# ----------------------------------------------------------------------------------------------
+# patch_depth_rows: the patch reads depth only in those rows (extract reads no others)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_patch_on_its_depth_rows_equals_patch_on_the_frame(seed):
+    rng = np.random.default_rng(seed)
+    params = SMALL if seed % 2 else PatchParams()
+    height, width = int(rng.integers(40, 90)), int(rng.integers(40, 90))
+    depth, tool = random_frame(rng, height, width)
+    whole = compute_patch(depth, tool, params)
+    row0, row1 = patch_depth_rows(tool, params)
+    assert row0 % 2 == 0 and 0 <= row0 <= row1 <= height
+    if not tool.any():
+        assert (row0, row1) == (0, 0)
+    else:
+        rows = np.flatnonzero(tool.any(axis=1))
+        assert row0 <= rows[0] and row1 > rows[-1]
+    # Depth outside the rows is never read: garbage there changes nothing.
+    scrambled = depth.copy()
+    scrambled[:row0] = rng.normal(size=(row0, width))
+    scrambled[row1:] = np.nan
+    assert compute_patch(scrambled, tool, params).distance_m == whole.distance_m or (
+        math.isnan(whole.distance_m) and math.isnan(compute_patch(scrambled, tool, params).distance_m))
+    band = compute_patch(depth[row0:row1], tool[row0:row1], params)
+    assert band.reason == whole.reason
+    for name in ("shaft_width_px", "band_width_px", "tool_area_px", "n_band", "n_valid_distance", "n_candidates",
+                 "invalid_depth_fraction", "distance_m", "score_m", "tool_depth_m", "signal"):
+        a, b = getattr(band, name), getattr(whole, name)
+        assert a == b or (math.isnan(a) and math.isnan(b)), name
+    np.testing.assert_array_equal(band.layer_ids, whole.layer_ids[row0:row1])
+    assert not whole.layer_ids[:row0].any() and not whole.layer_ids[row1:].any()
+    np.testing.assert_array_equal(band.band_yx + [row0, 0], whole.band_yx)
+    if whole.found:
+        assert (band.center_xy[0], band.center_xy[1] + row0) == whole.center_xy

@@ -218,6 +218,47 @@ def test_depth_png_in_session(tmp_path):
     assert frame.depth_m[1, 1] == np.float32(0.15)
 
 
+def test_load_depth_rows_equals_the_whole_map_cut(tmp_path):
+    root = tmp_path / "s"
+    written = make_session(root)
+    os.remove(root / "depth" / "2.npy")
+    mm = np.arange(H * W, dtype=np.uint16).reshape(H, W)
+    cv2.imwrite(str(root / "depth" / "2.png"), mm)  # a PNG frame: decoded whole, then cut
+    np.save(root / "depth" / "10.npy", written["10"]["depth"].astype(">f8"))  # big-endian float64
+    s = open_session(root)
+    for index in range(len(s)):
+        whole = s.load_frame(index, layers=("depth",)).depth_m
+        for row0, row1 in [(0, H), (3, 9), (0, 0), (H - 1, H)]:
+            rows = s.load_depth_rows(index, row0, row1)
+            assert rows.dtype == np.float32 and rows.shape == (row1 - row0, W) and not rows.flags.writeable
+            np.testing.assert_array_equal(rows, whole[row0:row1])
+    with pytest.raises(ValueError, match="out of range"):
+        s.load_depth_rows(0, 5, H + 1)
+    with pytest.raises(IndexError):
+        s.load_depth_rows(3, 0, 1)
+
+
+def test_load_depth_rows_bad_files_are_bad_frames(tmp_path):
+    root = tmp_path / "s"
+    make_session(root)
+    np.save(root / "depth" / "1.npy", np.zeros((H + 1, W), np.float32))  # wrong shape
+    np.save(root / "depth" / "2.npy", np.zeros((H, W), np.int32))  # wrong dtype
+    data = (root / "depth" / "10.npy").read_bytes()
+    (root / "depth" / "10.npy").write_bytes(data[:-100])  # truncated
+    s = open_session(root)
+    expected = {0: f"{H + 1}x{W}", 1: "int32", 2: "truncated"}
+    for index, message in expected.items():
+        bad = s.load_depth_rows(index, 2, 5)
+        assert isinstance(bad, BadFrame), index
+        assert str(root / "depth" / f"{s.stems[index]}.npy") in bad.reason and message in bad.reason
+    # The same problems, found by the whole-frame reader too.
+    for index in expected:
+        assert isinstance(s.load_frame(index, layers=("depth",)), BadFrame)
+    os.remove(root / "depth" / "1.npy")
+    bad = open_session(root).load_depth_rows(0, 0, 3)
+    assert isinstance(bad, BadFrame) and "missing" in bad.reason
+
+
 def test_force_by_frame_and_labels(tmp_path):
     root = tmp_path / "s"
     make_session(root, stems=("1", "2", "10", "11"))

@@ -89,28 +89,33 @@ def extract(
         "at most 8].")] = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
-    from .errors import SessionError
     from .allocator import keep_freed_memory
-    from .extract import DEFAULT_PROCESSES, BadFrameWarning, extract_features, run_config, write_features
-    from .session import open_session
+    from .workers import DEFAULT_PROCESSES, WorkerPool
 
     keep_freed_memory()
-    params, label_params = _resolve_params(params_file, contact_force)
-    try:
-        session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
-    except SessionError as exc:
-        _fail(str(exc))
-    typer.echo(session.depth_note, err=True)
-    output = output or Path("results") / session.name / "features.csv"
-    if _inside(output, session.root):
-        _fail(f"{output}: refusing to write inside the session directory {session.root}; choose another -o")
+    # The workers start first, so that they import NumPy, OpenCV and the patch while this
+    # process does the same and opens the session.
+    with WorkerPool((processes or DEFAULT_PROCESSES) - 1, setup=keep_freed_memory,
+                    preload=("contact_viz.extract",)) as pool:
+        from .errors import SessionError
+        from .extract import BadFrameWarning, extract_features, run_config, write_features
+        from .session import open_session
 
+        params, label_params = _resolve_params(params_file, contact_force)
+        try:
+            session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+        except SessionError as exc:
+            _fail(str(exc))
+        typer.echo(session.depth_note, err=True)
+        output = output or Path("results") / session.name / "features.csv"
+        if _inside(output, session.root):
+            _fail(f"{output}: refusing to write inside the session directory {session.root}; choose another -o")
+        with warnings.catch_warnings(record=True) as caught, _progress() as progress:
+            warnings.simplefilter("always", BadFrameWarning)
+            task = progress.add_task(f"extract {session.name}", total=len(session))
+            rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
+                                    pool=pool)
     bad: list[str] = []
-    with warnings.catch_warnings(record=True) as caught, _progress() as progress:
-        warnings.simplefilter("always", BadFrameWarning)
-        task = progress.add_task(f"extract {session.name}", total=len(session))
-        rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
-                                processes=processes or DEFAULT_PROCESSES)
     for w in caught:
         if issubclass(w.category, BadFrameWarning):
             bad.append(str(w.message))

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,12 +25,14 @@ from . import __version__
 from .atomic import atomic_write
 from .jsonfile import read_json, write_json
 from .params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
-from .patch import PatchResult, compute_patch
+from .patch import PatchResult, compute_patch, patch_depth_rows
 from .session import BadFrame, Frame, Session
+
+if TYPE_CHECKING:
+    from .workers import WorkerPool
 
 REASON_BAD_FRAME = "bad_frame"
 DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # frames whose patches are computed at once (threads)
-DEFAULT_PROCESSES = min(8, os.cpu_count() or 1)  # processes `contact-viz extract` spreads the frames over
 CHUNK_FRAMES = 8  # frames a process claims at a time when the frames are spread over processes
 
 # Columns of features.csv, in order. Units are in the names; see the README for each.
@@ -108,8 +111,11 @@ def _blank(value: float) -> float | str:
     return "" if value is None or (isinstance(value, float) and math.isnan(value)) else value
 
 
-def feature_row(session: Session, result: FrameResult) -> dict[str, object]:
-    """The features.csv row of one processed frame (values ready for csv; '' = empty)."""
+def feature_row(session: Session, result: FrameResult, patch_row0: int = 0) -> dict[str, object]:
+    """The features.csv row of one processed frame (values ready for csv; '' = empty).
+
+    ``patch_row0``: the first image row of the band of rows the patch was computed on (its
+    coordinates are relative to it; see patch.patch_depth_rows), 0 for a whole frame."""
     i = result.index
     label = int(session.labels[i])
     row: dict[str, object] = {
@@ -127,7 +133,7 @@ def feature_row(session: Session, result: FrameResult) -> dict[str, object]:
         distance_m=_blank(patch.distance_m),
         signal=_blank(patch.signal),
         patch_x="" if patch.center_xy is None else patch.center_xy[0],
-        patch_y="" if patch.center_xy is None else patch.center_xy[1],
+        patch_y="" if patch.center_xy is None else patch.center_xy[1] + patch_row0,
         reason=patch.reason or "",
         score_m=_blank(patch.score_m),
         tool_depth_m=_blank(patch.tool_depth_m),
@@ -143,7 +149,11 @@ def feature_row(session: Session, result: FrameResult) -> dict[str, object]:
 @dataclass(frozen=True)
 class _FeatureRowsTask:
     """The features rows of positions ``lo`` to ``hi - 1`` of ``indices``, one frame at a time
-    (a :class:`contact_viz.workers.ChunkTask`: pickled once into each worker process)."""
+    (a :class:`contact_viz.workers.ChunkTask`: pickled once into each worker process).
+
+    Each frame's depth is read only in the rows the patch needs (patch.patch_depth_rows); the
+    rows equal those of :func:`iter_frame_results` on whole frames.
+    """
 
     session: Session
     params: PatchParams
@@ -152,9 +162,14 @@ class _FeatureRowsTask:
     def __call__(self, lo: int, hi: int) -> list[dict[str, object]]:
         rows = []
         for index in self.indices[lo:hi]:
-            frame = self.session.load_frame(index)
-            patch = None if isinstance(frame, BadFrame) else compute_patch(frame.depth_m, frame.tool_mask, self.params)
-            rows.append(feature_row(self.session, FrameResult(frame, patch)))
+            frame = self.session.load_frame(index, layers=("mask",))
+            row0, row1 = (0, 0) if isinstance(frame, BadFrame) else patch_depth_rows(frame.tool_mask, self.params)
+            depth_m = None if isinstance(frame, BadFrame) else self.session.load_depth_rows(index, row0, row1)
+            if isinstance(depth_m, BadFrame):
+                frame = depth_m
+            patch = None if isinstance(frame, BadFrame) else compute_patch(
+                depth_m, frame.tool_mask[row0:row1], self.params)
+            rows.append(feature_row(self.session, FrameResult(frame, patch), patch_row0=row0))
         return rows
 
 
@@ -165,15 +180,19 @@ def extract_features(
     indices: Sequence[int] | None = None,
     progress: Callable[[int], None] | None = None,
     processes: int = 1,
+    pool: WorkerPool | None = None,
 ) -> list[dict[str, object]]:
     """One features row per frame of ``session`` (bad frames included, with reason ``bad_frame``,
     and a :class:`BadFrameWarning` each).
 
     ``progress`` is called with the number of frames done. With ``processes`` > 1 the frames are
-    spread over this process and ``processes - 1`` spawned ones (see :mod:`contact_viz.workers`:
-    threads cannot use more than about one core for this work); the rows are the same.
+    spread over this process and ``processes - 1`` spawned ones (threads cannot use more than
+    about one core for this work); ``pool`` instead shares them with workers started beforehand,
+    which import while the caller opens the session (the CLI starts
+    ``WorkerPool(n, setup=keep_freed_memory, preload=("contact_viz.extract",))`` first thing).
+    Either way the rows are the same.
     """
-    if processes == 1:
+    if processes == 1 and pool is None:
         rows = []
         for done, result in enumerate(iter_frame_results(session, params, indices=indices), start=1):
             rows.append(feature_row(session, result))
@@ -186,9 +205,15 @@ def extract_features(
     order = tuple(range(len(session))) if indices is None else tuple(int(i) for i in indices)
     bad = [i for i in order if not 0 <= i < len(session)]
     if bad:
+        if pool is not None:
+            pool.close()
         raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(session)} frames")
-    rows = run_chunks(_FeatureRowsTask(session, params, order), len(order), chunk_size=CHUNK_FRAMES,
-                      processes=processes, progress=progress, worker_setup=keep_freed_memory)
+    task = _FeatureRowsTask(session, params, order)
+    if pool is not None:
+        rows = pool.run(task, len(order), chunk_size=CHUNK_FRAMES, progress=progress)
+    else:
+        rows = run_chunks(task, len(order), chunk_size=CHUNK_FRAMES, processes=processes, progress=progress,
+                          worker_setup=keep_freed_memory)
     for row in rows:
         if row["reason"] == REASON_BAD_FRAME:
             warnings.warn(f"frame {row['frame']} skipped: {row['detail']}", BadFrameWarning, stacklevel=2)

@@ -36,6 +36,7 @@ whole frame), with integral images gathered only at band pixels.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -196,8 +197,14 @@ def _dilate_disc(mask_u8: np.ndarray, radius_px: float) -> np.ndarray:
 
 def _max_distance_to_background(tool_u8: np.ndarray) -> float:
     """Largest exact Euclidean distance from a tool pixel of ``tool_u8`` (uint8 0/1) to a
-    background pixel of it, in its pixels; outside the array is not background."""
-    return float(cv2.minMaxLoc(cv2.distanceTransform(tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE))[1])
+    background pixel of it, in its pixels; outside the array is not background.
+
+    OpenCV's exact transform returns float32 whose last bits depend on the buffer's memory
+    alignment; the distance is the square root of an integer (a sum of two squares), which
+    rounding the float32 value's square recovers exactly up to distances of 2,000 px.
+    """
+    distance = cv2.minMaxLoc(cv2.distanceTransform(tool_u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE))[1]
+    return math.sqrt(round(distance * distance))
 
 
 def _shaft_width_px(tool_u8: np.ndarray, row_phase: int, col_phase: int) -> float:
@@ -249,25 +256,50 @@ class _Layers:
     band_width_px: float
 
 
+def _tool_u8(tool_mask: np.ndarray) -> np.ndarray:
+    """The tool mask as a C-contiguous uint8 0/1 array (a view when it already is bool)."""
+    tool = tool_mask if tool_mask.dtype == np.bool_ else tool_mask != 0
+    return np.ascontiguousarray(tool).view(np.uint8)
+
+
+def _crop_bounds(bbox: tuple[int, int, int, int], shape: tuple[int, int], params: PatchParams) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1), half-open: the tool's bounding box ``bbox`` (row0, row1, col0, col1,
+    inclusive) padded by the band's reach and clipped to the frame. Every interior, ring and
+    band pixel lies inside it, so windows clipped to it lose nothing that could contribute; the
+    pad is at least 2 px, so that an even row and column of background frame the tool (see
+    _shaft_width_px)."""
+    row0, row1, col0, col1 = bbox
+    pad = max(int(np.ceil(params.outer_reach_px)) + 1, SHAFT_GRID_PX)
+    return max(row0 - pad, 0), min(row1 + pad + 1, shape[0]), max(col0 - pad, 0), min(col1 + pad + 1, shape[1])
+
+
+def patch_depth_rows(tool_mask: np.ndarray, params: PatchParams = PatchParams()) -> tuple[int, int]:
+    """Rows ``(row0, row1)``, half-open, outside which :func:`compute_patch` never reads the
+    depth for this ``tool_mask`` ((H, W) bool or integer); ``(0, 0)`` for an empty mask.
+
+    ``row0`` is even, so ``compute_patch(depth_m[row0:row1], tool_mask[row0:row1], params)``
+    equals ``compute_patch(depth_m, tool_mask, params)`` with every row coordinate less
+    ``row0`` (the shaft width is measured on the image's even rows). `contact-viz extract`
+    reads only these rows of each depth map.
+    """
+    if not isinstance(tool_mask, np.ndarray) or tool_mask.ndim != 2:
+        raise ValueError(f"tool_mask must be a 2-D array (H, W), got shape {getattr(tool_mask, 'shape', None)}")
+    bbox = _kernels.tool_bbox(_tool_u8(tool_mask))
+    if bbox is None:
+        return 0, 0
+    y0, y1, _, _ = _crop_bounds(bbox, tool_mask.shape, params)
+    return y0 - y0 % SHAFT_GRID_PX, y1
+
+
 def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams) -> _Layers | PatchResult:
     """Interior, ring and band of one frame, or the empty PatchResult when there is no band."""
     _check_inputs(depth_m, tool_mask)
     shape = depth_m.shape
-    height, width = shape
-    tool = tool_mask if tool_mask.dtype == np.bool_ else tool_mask != 0
-    tool_full_u8 = np.ascontiguousarray(tool).view(np.uint8)
-
+    tool_full_u8 = _tool_u8(tool_mask)
     bbox = _kernels.tool_bbox(tool_full_u8)
     if bbox is None:
         return _empty_result(shape, REASON_EMPTY_MASK)
-    row0, row1, col0, col1 = bbox
-
-    # Work on the tool's bounding box padded by the band's reach: every interior, ring and band
-    # pixel lies inside it, so windows clipped to it lose nothing that could contribute. At least
-    # 2 px, so that an even row and column of background frame the tool (see _shaft_width_px).
-    pad = max(int(np.ceil(params.outer_reach_px)) + 1, SHAFT_GRID_PX)
-    y0, y1 = max(row0 - pad, 0), min(row1 + pad + 1, height)
-    x0, x1 = max(col0 - pad, 0), min(col1 + pad + 1, width)
+    y0, y1, x0, x1 = _crop_bounds(bbox, shape, params)
     tool_u8 = np.ascontiguousarray(tool_full_u8[y0:y1, x0:x1])
     depth_c = depth_m[y0:y1, x0:x1]
     if depth_c.dtype not in (np.float32, np.float64):

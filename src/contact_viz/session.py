@@ -50,6 +50,7 @@ from PIL import Image
 
 from contact_viz.calibration import Calibration, Rectification, StereoCalibration, read_calibration
 from contact_viz.errors import SessionError
+from contact_viz.npy_rows import read_npy_rows
 from contact_viz.palette_png import is_palette_png, palette_indices
 from contact_viz.params import LabelParams
 from contact_viz.stereo import DEPTH_METHODS, DisparityCache, SGBMParams, disparity_to_depth
@@ -631,6 +632,28 @@ def read_depth_m(path: Path) -> np.ndarray:
     raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
 
 
+def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, int]) -> np.ndarray:
+    """Rows ``row0`` to ``row1 - 1`` of a depth .npy of ``image_size`` (H, W), as a writable
+    (row1 - row0, W) float32 array in metres, values as stored; only those rows are read.
+    SessionError naming the file for a missing, malformed or truncated file or another shape."""
+    what = "a 2-D float32 depth array in metres (.npy)"
+    try:
+        rows, shape = read_npy_rows(path, row0, row1)
+    except FileNotFoundError as exc:
+        raise SessionError(path, f"expected {what}, file missing") from exc
+    except (OSError, ValueError) as exc:
+        raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
+    if rows.dtype.kind != "f" or rows.dtype.itemsize not in (4, 8):
+        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {rows.dtype} with shape {shape}")
+    if shape != tuple(image_size):
+        raise SessionError(
+            path,
+            f"expected a depth map of {image_size[0]}x{image_size[1]} px (height x width, as the left images), "
+            f"found {shape[0]}x{shape[1]}",
+        )
+    return np.ascontiguousarray(rows, dtype=np.float32)
+
+
 def read_disparity_px(path: Path) -> np.ndarray:
     """Decode a disparity .npy (FoundationStereo's raw output) to (H, W) float32 px.
 
@@ -842,6 +865,32 @@ class Session:
         except SessionError as error:
             return BadFrame(index=index, stem=stem, timestamp_s=float(self.timestamps_s[index]), error=error)
         return (depth_m, origin) if with_origin else depth_m
+
+    def load_depth_rows(self, index: int, row0: int, row1: int) -> np.ndarray | BadFrame:
+        """Rows ``row0`` to ``row1 - 1`` of frame ``index``'s depth, (row1 - row0, W) float32 m,
+        read-only, values as stored (see read_depth_m); or a BadFrame.
+
+        From depth/*.npy files stored rectified, only those rows are read (`contact-viz extract`
+        needs the depth only around the tool); from any other source the whole map is decoded
+        and cut. The file's shape and dtype are checked either way.
+        """
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for a session of {len(self)} frames")
+        height = self.image_size[0]
+        if not 0 <= row0 <= row1 <= height:
+            raise ValueError(f"rows {row0}..{row1 - 1} out of range for images of {height} rows")
+        stem = self.stems[index]
+        try:
+            path = self._depth_files.get(stem) if self.depth_source == "depth" else None
+            if path is not None and path.suffix.lower() == ".npy" and self.rectification is None:
+                depth_m = read_depth_rows_m(path, row0, row1, self.image_size)
+            else:
+                depth_m, _ = self._depth(stem, {})
+                depth_m = depth_m[row0:row1]
+        except SessionError as error:
+            return BadFrame(index=index, stem=stem, timestamp_s=float(self.timestamps_s[index]), error=error)
+        depth_m.flags.writeable = False
+        return depth_m
 
     def load_frame(self, index: int, layers: Sequence[str] = ("mask", "depth")) -> Frame | BadFrame:
         """Decode the requested ``layers`` of frame ``index`` (synchronously); a BadFrame on any problem."""
