@@ -3,13 +3,15 @@
 Makes (once, cached under --workdir) a 1920x1080 synthetic session of --frames frames, and a
 longer one that lists those frames --loops times over (symbolic links, so it costs no disk; the
 paper's sessions have about 1,400 frames, and start-up weighs less in a longer session). For each
-session it times, over --repeats runs each, (a) decoding every mask PNG and depth .npy once in a
-plain loop (PIL + numpy, one thread, in this process: its own start-up is not counted) and (b) the
-whole `contact-viz extract` command in a fresh process, start-up included. Prints the medians and
-their ratio (the issue's target: at most about 1.5). With a warm page cache it also times the two
-parts alone on one thread in a fresh process (the session reader's decoding of mask + depth, and
-the patch) and prints the bound they set: their sum spread perfectly over two cores, before any
-start-up or output.
+session it times, over --repeats interleaved runs each, (a) decoding every mask PNG and depth
+.npy once in a plain loop (PIL + numpy, one thread, in this process: its own start-up is not
+counted), (b) the whole `contact-viz extract` command in a fresh process, start-up included, with
+its default processes (one per core), and (c) the same with --processes 1 (one process; decoding
+in a thread). Prints the medians and the ratios to (a) (the issue's target: at most about 1.5).
+With a warm page cache it also times, in a fresh single-threaded process, the work of one frame
+as extract does it (decode the mask, read the depth rows around the tool, compute the patch;
+means over the session) and prints the bound it sets: that work spread perfectly over the cores,
+before any start-up or output.
 
 --cold drops the page cache before every run (root only; Linux) and then warms the Python
 libraries (`contact-viz --help`, numpy, PIL), so the session's files come from disk while the
@@ -43,9 +45,9 @@ def decode_once(session: Path) -> float:
     return time.perf_counter() - t0
 
 
-def run_extract(session: Path, out: Path) -> float:
+def run_extract(session: Path, out: Path, *options: str) -> float:
     t0 = time.perf_counter()
-    subprocess.run([*CLI, "extract", str(session), "-o", str(out)], check=True, capture_output=True)
+    subprocess.run([*CLI, "extract", str(session), "-o", str(out), *options], check=True, capture_output=True)
     return time.perf_counter() - t0
 
 
@@ -80,55 +82,68 @@ def looped_session(source: Path, loops: int) -> Path:
     return target
 
 
-def parts_per_frame(session_dir: Path) -> tuple[float, float]:
-    """Seconds per frame, one thread, in a fresh process: the session reader's decoding of
-    mask + depth, and compute_patch alone."""
+def parts_per_frame(session_dir: Path) -> tuple[float, float, float]:
+    """Mean seconds per frame, one thread, in a fresh process, of extract's three steps: decode
+    the mask, read the depth rows around the tool, compute the patch."""
     out = subprocess.run([sys.executable, __file__, "--parts-of", str(session_dir)],
                          check=True, capture_output=True, text=True)
-    reader_s, patch_s = (float(v) for v in out.stdout.split())
-    return reader_s, patch_s
+    mask_s, depth_s, patch_s = (float(v) for v in out.stdout.split())
+    return mask_s, depth_s, patch_s
 
 
 def _print_parts(session_dir: Path) -> None:
     import cv2
 
-    from contact_viz.patch import compute_patch
+    from contact_viz.allocator import keep_freed_memory
+    from contact_viz.params import PatchParams
+    from contact_viz.patch import compute_patch, patch_depth_rows
     from contact_viz.session import open_session
 
     cv2.setNumThreads(1)
-    session = open_session(session_dir)
-    decode_s, patch_s = [], []
+    keep_freed_memory()  # as `contact-viz extract` does
+    session, params = open_session(session_dir), PatchParams()
+    mask_s, depth_s, patch_s = [], [], []
     for index in range(len(session)):
         t0 = time.perf_counter()
-        frame = session.load_frame(index)
+        tool = session.load_frame(index, layers=("mask",)).tool_mask
         t1 = time.perf_counter()
-        compute_patch(frame.depth_m, frame.tool_mask)
-        patch_s.append(time.perf_counter() - t1)
-        decode_s.append(t1 - t0)
-    print(statistics.median(decode_s), statistics.median(patch_s))
+        row0, row1 = patch_depth_rows(tool, params)
+        depth = session.load_depth_rows(index, row0, row1)
+        t2 = time.perf_counter()
+        compute_patch(depth, tool[row0:row1], params)
+        t3 = time.perf_counter()
+        mask_s.append(t1 - t0)
+        depth_s.append(t2 - t1)
+        patch_s.append(t3 - t2)
+    print(statistics.fmean(mask_s), statistics.fmean(depth_s), statistics.fmean(patch_s))
 
 
 def measure(session: Path, frames: int, repeats: int, cold: bool, workdir: Path) -> None:
-    decode_s, extract_s = [], []
+    decode_s, extract_s, one_s = [], [], []
     for _ in range(repeats):
-        if cold:
-            drop_page_cache()
-        decode_s.append(decode_once(session))
-        if cold:
-            drop_page_cache()
-        extract_s.append(run_extract(session, workdir / "features.csv"))
-    d, e = statistics.median(decode_s), statistics.median(extract_s)
+        for runs, run in ((decode_s, lambda: decode_once(session)),
+                          (extract_s, lambda: run_extract(session, workdir / "features.csv")),
+                          (one_s, lambda: run_extract(session, workdir / "features.csv", "--processes", "1"))):
+            if cold:
+                drop_page_cache()
+            runs.append(run())
+    d, e, one = statistics.median(decode_s), statistics.median(extract_s), statistics.median(one_s)
+    cores = os.cpu_count() or 1
     cache = "cold" if cold else "warm"
-    print(f"{session.name}: {frames} frames, page cache {cache}, medians of {repeats}")
+    print(f"{session.name}: {frames} frames, page cache {cache}, medians of {repeats} interleaved runs")
     print(f"  decode mask+depth once: {d:.2f} s ({1000 * d / frames:.2f} ms/frame)")
-    print(f"  contact-viz extract (whole command, start-up included): {e:.2f} s "
-          f"({1000 * e / frames:.2f} ms/frame, {frames / e:.0f} frames/s)")
-    print(f"  ratio extract / decode: {e / d:.2f}")
+    print(f"  contact-viz extract (whole command, start-up included, {min(cores, 8)} processes): {e:.2f} s "
+          f"({1000 * e / frames:.2f} ms/frame, {frames / e:.0f} frames/s); ratio to decode {e / d:.2f}")
+    print(f"  contact-viz extract --processes 1: {one:.2f} s; ratio to decode {one / d:.2f}")
+    print("  runs, s: decode " + " ".join(f"{v:.2f}" for v in decode_s) + " | extract " + " ".join(
+        f"{v:.2f}" for v in extract_s) + " | --processes 1 " + " ".join(f"{v:.2f}" for v in one_s))
     if not cold:
-        reader_s, patch_s = parts_per_frame(session)
-        bound = (reader_s + patch_s) / 2 * frames
-        print(f"  parts, one thread, medians: reader {1000 * reader_s:.2f} ms/frame, patch {1000 * patch_s:.2f} "
-              f"ms/frame; both spread perfectly over 2 cores, no start-up: {bound:.2f} s = {bound / d:.2f}x decode")
+        mask_s, depth_s, patch_s = parts_per_frame(session)
+        work = mask_s + depth_s + patch_s
+        bound = work / cores * frames
+        print(f"  work per frame, one thread, means: mask {1000 * mask_s:.2f} ms + depth rows {1000 * depth_s:.2f} ms "
+              f"+ patch {1000 * patch_s:.2f} ms = {1000 * work:.2f} ms; spread perfectly over {cores} cores, no "
+              f"start-up: {bound:.2f} s = {bound / d:.2f}x decode")
 
 
 def main() -> None:

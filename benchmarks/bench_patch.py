@@ -2,7 +2,9 @@
 
 Frames are synthetic: a tissue surface with stereo-like noise and holes, and a tool shaft of
 60-140 px entering from a random image border at a random angle. Prints the median and the
-spread over the frames. Run: .venv/bin/python benchmarks/bench_patch.py [--frames 60]
+spread over the frames. As in `contact-viz extract`, OpenCV runs on one thread and glibc keeps
+freed memory for the next frame (contact_viz.allocator).
+Run: .venv/bin/python benchmarks/bench_patch.py [--frames 60]
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import time
 import cv2
 import numpy as np
 
+from contact_viz.allocator import keep_freed_memory
 from contact_viz.params import PatchParams
 from contact_viz.patch import compute_patch
 
@@ -39,6 +42,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     cv2.setNumThreads(1)
+    keep_freed_memory()
     rng = np.random.default_rng(args.seed)
     frames = [synthetic_frame(rng) for _ in range(args.frames)]
     params = PatchParams()

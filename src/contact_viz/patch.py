@@ -30,7 +30,10 @@ Choices the paper leaves open, fixed here:
   cost). A tool covering none or all of those grid pixels is measured among all pixels.
 
 Speed: every computation runs on the tool's bounding box padded by the band's reach (never the
-whole frame), with integral images gathered only at band pixels.
+whole frame; :func:`patch_depth_rows` says which rows of the depth that is), with integral images
+gathered only at band pixels. Morphology and the distance transform are OpenCV's; the per-pixel
+passes are compiled (contact_viz._patch_kernels), each checked against the NumPy expression it
+replaces, and the whole against the literal formulas (tests).
 """
 
 from __future__ import annotations
