@@ -250,3 +250,47 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
         assert [r["reason"] for r in whole][:3] == ["empty_mask", whole[1]["reason"], whole[2]["reason"]]
         assert whole[6]["reason"] == whole[9]["reason"] == REASON_BAD_FRAME
         assert sum(r["distance_m"] != "" for r in whole) >= 5
+
+
+def test_ctrl_c_stops_every_process_and_writes_nothing(tmp_path):
+    """Ctrl-C in a terminal reaches the command and its workers: all stop, no features file."""
+    import signal
+
+    import cv2
+
+    root, height, width = tmp_path / "long", 540, 960
+    for sub in ("left", "masks", "depth"):
+        (root / sub).mkdir(parents=True)
+    (root / "K.txt").write_text("500 0 480 0 500 270 0 0 1\n0.005\n")
+    tool = np.zeros((height, width), np.uint8)
+    cv2.line(tool, (0, 100), (500, 300), 1, 60)
+    cv2.imwrite(str(tmp_path / "mask.png"), tool * 255)
+    np.save(tmp_path / "depth.npy", np.full((height, width), 0.08, np.float32))
+    cv2.imwrite(str(tmp_path / "left.png"), np.zeros((height, width, 3), np.uint8))
+    n = 6000  # the same frame linked many times: a run of several seconds
+    for i in range(n):
+        for sub, name in (("masks", "mask.png"), ("depth", "depth.npy"), ("left", "left.png")):
+            (root / sub / f"{i}{Path(name).suffix}").symlink_to(tmp_path / name)
+    (root / "force.csv").write_text("frame,fx,fy,fz\n" + "".join(f"{i},0,0,1\n" for i in range(n)))
+    out = tmp_path / "out" / "features.csv"
+    run = subprocess.Popen([*CLI, "extract", str(root), "-o", str(out), "--processes", "2"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    time.sleep(2.0)  # started, workers running
+    assert run.poll() is None, run.communicate()
+    os.killpg(run.pid, signal.SIGINT)  # what a terminal does: the whole process group
+    run.communicate(timeout=30)
+    assert run.returncode == 130  # click exits with 128 + SIGINT on Ctrl-C
+    assert not out.exists() and not out.with_name("features.csv.json").exists()
+    time.sleep(0.5)
+    running = [p for p in Path("/proc").iterdir() if p.name.isdigit() and _running_in_group(p, run.pid)]
+    assert running == []
+
+
+def _running_in_group(proc: Path, group: int) -> bool:
+    """Whether /proc/PID ``proc`` is a process of process group ``group`` that has not exited
+    (an exited one waiting to be reaped by init, a zombie, does not count)."""
+    try:
+        state, _, pgrp = (proc / "stat").read_text().rsplit(")", 1)[1].split()[:3]
+    except (OSError, ValueError):
+        return False
+    return int(pgrp) == group and state != "Z"

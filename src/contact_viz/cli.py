@@ -167,11 +167,14 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     """Features for fit / evaluate / predict, each source either a session directory (extracted
     with ``params``, cached) or a features CSV written by `contact-viz extract`, whose saved
     configuration must have the same patch parameters as ``params``."""
+    from .allocator import keep_freed_memory
     from .errors import SessionError
     from .extract import cached_features, feature_arrays, read_features, read_features_config
     from .model_file import params_mismatch
     from .session import open_session
+    from .workers import DEFAULT_PROCESSES
 
+    keep_freed_memory()
     out = []
     for source in sources:
         try:
@@ -191,7 +194,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
                     task = progress.add_task(f"features {name}", total=len(session))
                     rows, cached = cached_features(
                         session, params, label_params=label_params, cache_dir=cache_dir,
-                        progress=lambda done: progress.update(task, completed=done))
+                        progress=lambda done: progress.update(task, completed=done), processes=DEFAULT_PROCESSES)
                     if cached:
                         progress.update(task, completed=len(session), description=f"features {name} (cached)")
         except (SessionError, ValueError, KeyError) as exc:

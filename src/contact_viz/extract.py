@@ -276,11 +276,13 @@ def cached_features(
     label_params: LabelParams = LabelParams(),
     cache_dir: str | Path | None = None,
     progress: Callable[[int], None] | None = None,
+    processes: int = 1,
 ) -> tuple[list[dict[str, object]], bool]:
     """Features of ``session``, reused from the cache when its files and the parameters are unchanged.
 
     Returns ``(rows, from_cache)``. The cache lives outside the session directory
-    (:func:`contact_viz.cache.default_cache_dir`, or ``cache_dir``).
+    (:func:`contact_viz.cache.default_cache_dir`, or ``cache_dir``). ``processes``: as in
+    :func:`extract_features`.
     """
     from .cache import cache_path
 
@@ -289,7 +291,7 @@ def cached_features(
     path = cache_path(session.root, "features", key, ".csv", cache_dir)
     if path.exists():
         return read_features(path), True
-    rows = extract_features(session, params, progress=progress)
+    rows = extract_features(session, params, progress=progress, processes=processes)
     write_features(rows, path, run_config(session, params, label_params))
     return [{k: str(v) for k, v in r.items()} for r in rows], False
 

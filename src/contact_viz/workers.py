@@ -25,12 +25,14 @@ import multiprocessing
 import os
 import pickle
 import queue
+import signal
 import threading
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
-DEFAULT_PROCESSES = min(8, os.cpu_count() or 1)  # processes to share work over, the caller included
+_USABLE_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+DEFAULT_PROCESSES = min(8, _USABLE_CORES)  # processes to share work over, the caller included
 WORKER_POLL_S = 0.05  # how often the caller checks on its workers while waiting, s
 WORKER_STOP_TIMEOUT_S = 5.0  # how long a worker gets to exit before it is terminated, s
 
@@ -75,7 +77,8 @@ def _worker_main(job_connection, counter, results, setup: Callable[[], object] |
                  preload: Sequence[str]) -> None:
     """Body of a worker process: run ``setup``, import ``preload``, then read the job (task,
     chunk bounds) from its pipe, claim chunks until none is left, put ``(chunk, ok, payload)``
-    on ``results``."""
+    on ``results``. Ctrl-C is left to the caller, which stops its workers."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if setup is not None:
         setup()
     for module in preload:
