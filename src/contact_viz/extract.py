@@ -160,17 +160,18 @@ class _FeatureRowsTask:
     indices: tuple[int, ...]
 
     def __call__(self, lo: int, hi: int) -> list[dict[str, object]]:
-        rows = []
-        for index in self.indices[lo:hi]:
-            frame = self.session.load_frame(index, layers=("mask",))
-            row0, row1 = (0, 0) if isinstance(frame, BadFrame) else patch_depth_rows(frame.tool_mask, self.params)
-            depth_m = None if isinstance(frame, BadFrame) else self.session.load_depth_rows(index, row0, row1)
-            if isinstance(depth_m, BadFrame):
-                frame = depth_m
-            patch = None if isinstance(frame, BadFrame) else compute_patch(
-                depth_m, frame.tool_mask[row0:row1], self.params)
-            rows.append(feature_row(self.session, FrameResult(frame, patch), patch_row0=row0))
-        return rows
+        return [self._row(index) for index in self.indices[lo:hi]]
+
+    def _row(self, index: int) -> dict[str, object]:
+        frame = self.session.load_frame(index, layers=("mask",))
+        if isinstance(frame, BadFrame):
+            return feature_row(self.session, FrameResult(frame, None))
+        row0, row1 = patch_depth_rows(frame.tool_mask, self.params)
+        depth_m = self.session.load_depth_rows(index, row0, row1)
+        if isinstance(depth_m, BadFrame):
+            return feature_row(self.session, FrameResult(depth_m, None))
+        patch = compute_patch(depth_m, frame.tool_mask[row0:row1], self.params)
+        return feature_row(self.session, FrameResult(frame, patch), patch_row0=row0)
 
 
 def extract_features(
