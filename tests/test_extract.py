@@ -294,3 +294,15 @@ def _running_in_group(proc: Path, group: int) -> bool:
     except (OSError, ValueError):
         return False
     return int(pgrp) == group and state != "Z"
+
+
+def test_processes_with_sgbm_depth(tmp_path):
+    """A session whose depth SGBM computes (no depth/) is shared by processes too: the session,
+    its matcher settings and cache travel to the workers, and the rows are the same."""
+    generate_session(tmp_path / "s", SynthParams(phantom="cup", frames=6, seed=1, width=320, height=180))
+    shutil.rmtree(tmp_path / "s" / "depth")
+    session = open_session(tmp_path / "s", cache_dir=tmp_path / "cache")
+    assert session.depth_source == "sgbm"
+    shared = extract_features(session, processes=2)
+    assert shared == extract_features(session)
+    assert sum(r["distance_m"] != "" for r in shared) >= 4
