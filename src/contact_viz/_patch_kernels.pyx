@@ -189,6 +189,37 @@ def _check_same_shape(*arrays):
         raise ValueError(f"the arrays must all have the same (h, w) shape, got {sorted(shapes)}")
 
 
+cdef struct _Corners:
+    # Flat offsets into an (h+1, w+1) integral image of a window's corners (y1, x1), (y0, x1),
+    # (y1, x0), (y0, x0): the window's sum is I[a] - I[b] - I[c] + I[d].
+    Py_ssize_t a, b, c, d
+
+
+cdef inline _Corners _window_corners(long long flat, Py_ssize_t height, Py_ssize_t width,
+                                     Py_ssize_t half) noexcept nogil:
+    """Corners of the (2*half+1)^2 window around flat crop index ``flat``, clipped to the
+    (height, width) crop."""
+    cdef Py_ssize_t y = flat // width, x = flat - (flat // width) * width, stride = width + 1
+    cdef Py_ssize_t y0 = y - half if y > half else 0
+    cdef Py_ssize_t y1 = y + half + 1 if y + half + 1 < height else height
+    cdef Py_ssize_t x0 = x - half if x > half else 0
+    cdef Py_ssize_t x1 = x + half + 1 if x + half + 1 < width else width
+    cdef _Corners corners
+    corners.a = y1 * stride + x1
+    corners.b = y0 * stride + x1
+    corners.c = y1 * stride + x0
+    corners.d = y0 * stride + x0
+    return corners
+
+
+cdef inline double _window_sum(const double* integral, _Corners k) noexcept nogil:
+    return integral[k.a] - integral[k.b] - integral[k.c] + integral[k.d]
+
+
+cdef inline int _window_count(const int* integral, _Corners k) noexcept nogil:
+    return integral[k.a] - integral[k.b] - integral[k.c] + integral[k.d]
+
+
 def band_distances(
     const double[:, ::1] tool_sum_int,
     const int[:, ::1] tool_cnt_int,
@@ -207,29 +238,26 @@ def band_distances(
     fewer than ``tau_tool`` valid interior pixels, band_d also where p's own depth is invalid.
     """
     cdef Py_ssize_t height = tool_sum_int.shape[0] - 1, width = tool_sum_int.shape[1] - 1
-    cdef Py_ssize_t n = band_flat.shape[0], i, y, x, y0, y1, x0, x1
+    cdef Py_ssize_t n = band_flat.shape[0], i, y
     cdef int count
     cdef double mean
+    cdef _Corners corners
     band_d_arr = np.empty(n, np.float64)
     tool_mean_arr = np.empty(n, np.float64)
     cdef double[::1] band_d = band_d_arr
     cdef double[::1] tool_mean = tool_mean_arr
     with nogil:
         for i in range(n):
-            y = band_flat[i] // width
-            x = band_flat[i] - y * width
-            y0 = y - half if y > half else 0
-            y1 = y + half + 1 if y + half + 1 < height else height
-            x0 = x - half if x > half else 0
-            x1 = x + half + 1 if x + half + 1 < width else width
-            count = tool_cnt_int[y1, x1] - tool_cnt_int[y0, x1] - tool_cnt_int[y1, x0] + tool_cnt_int[y0, x0]
+            corners = _window_corners(band_flat[i], height, width, half)
+            count = _window_count(&tool_cnt_int[0, 0], corners)
             if count < tau_tool:
                 tool_mean[i] = NAN
                 band_d[i] = NAN
                 continue
-            mean = (tool_sum_int[y1, x1] - tool_sum_int[y0, x1] - tool_sum_int[y1, x0] + tool_sum_int[y0, x0]) / count
+            mean = _window_sum(&tool_sum_int[0, 0], corners) / count
             tool_mean[i] = mean
-            band_d[i] = <double>depth_m[y, x] - mean if band_valid[i] else NAN
+            y = band_flat[i] // width
+            band_d[i] = <double>depth_m[y, band_flat[i] - y * width] - mean if band_valid[i] else NAN
     return band_d_arr, tool_mean_arr
 
 
@@ -246,8 +274,9 @@ def band_window_sums(
     ``band_flat``: (N,) int64 flat crop indices; ``band_d``: (N,) float64 m, NaN = undefined.
     Returns ``(count, total)``: (N,) int32 and (N,) float64 m.
     """
-    cdef Py_ssize_t n = band_flat.shape[0], i, y, x, y0, y1, x0, x1, next_flat
+    cdef Py_ssize_t n = band_flat.shape[0], i, y, x, next_flat
     cdef double row_sum, value
+    cdef _Corners corners
     cdef int row_cnt
     cdef double *abs_above
     cdef double *abs_row
@@ -296,14 +325,9 @@ def band_window_sums(
                 abs_row[x + 1] = abs_above[x + 1] + row_sum
                 cnt_row[x + 1] = cnt_above[x + 1] + row_cnt
         for i in range(n):
-            y = band_flat[i] // width
-            x = band_flat[i] - y * width
-            y0 = y - half if y > half else 0
-            y1 = y + half + 1 if y + half + 1 < height else height
-            x0 = x - half if x > half else 0
-            x1 = x + half + 1 if x + half + 1 < width else width
-            count[i] = cnt_int[y1, x1] - cnt_int[y0, x1] - cnt_int[y1, x0] + cnt_int[y0, x0]
-            total[i] = abs_int[y1, x1] - abs_int[y0, x1] - abs_int[y1, x0] + abs_int[y0, x0]
+            corners = _window_corners(band_flat[i], height, width, half)
+            count[i] = _window_count(&cnt_int[0, 0], corners)
+            total[i] = _window_sum(&abs_int[0, 0], corners)
     return count_arr, total_arr
 
 
