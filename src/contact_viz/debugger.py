@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,6 +35,7 @@ from contact_viz.extract import iter_frame_results
 from contact_viz.hmm import StreamingFilter
 from contact_viz.params import PatchParams
 from contact_viz.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
+from contact_viz.prefetch import prefetched
 from contact_viz.session import Session, read_rgb
 
 __all__ = [
@@ -223,28 +222,6 @@ class _ImageReader:
         return _Images(left_jpeg, left_rgb, colors, right_jpeg, right_rgb, right_path is not None, tuple(notes))
 
 
-def _prefetched(load: Callable[[int], _Images], indices: Sequence[int], ahead: int) -> Iterator[_Images]:
-    """``load(i)`` for each index in order, computed in one background thread at most ``ahead`` frames ahead."""
-    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="contact-viz-images")
-    pending: deque = deque()
-    todo = iter(indices)
-    try:
-        for index in todo:
-            pending.append(executor.submit(load, index))
-            if len(pending) >= ahead:
-                break
-        while pending:
-            result = pending.popleft().result()
-            index = next(todo, None)
-            if index is not None:
-                pending.append(executor.submit(load, index))
-            yield result
-    finally:
-        for future in pending:
-            future.cancel()
-        executor.shutdown(wait=True, cancel_futures=True)
-
-
 # --------------------------------------------------------------------------------------------
 # The run loop
 # --------------------------------------------------------------------------------------------
@@ -304,7 +281,7 @@ def run_debugger(
     reader = _ImageReader(session, options, with_right)
 
     results = iter_frame_results(session, options.patch_params, layers=("mask", "depth"), indices=indices)
-    images = _prefetched(reader.load, indices, options.prefetch)
+    images = prefetched(reader.load, indices, options.prefetch, thread_name="contact-viz-images")
     done = bad = 0
     wait_s = image_wait_s = prepare_s = log_s = 0.0
     interrupted = False

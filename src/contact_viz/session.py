@@ -30,6 +30,7 @@ writes into the session directory (the SGBM cache lives in the cache folder).
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 import logging
@@ -38,9 +39,7 @@ import os
 import re
 import warnings
 import zlib
-from collections import deque
 from collections.abc import Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -52,6 +51,7 @@ from contact_viz.calibration import Calibration, Rectification, StereoCalibratio
 from contact_viz.errors import SessionError
 from contact_viz.npy_rows import read_npy_rows
 from contact_viz.palette_png import is_palette_png, palette_indices
+from contact_viz.prefetch import prefetched
 from contact_viz.params import LabelParams
 from contact_viz.stereo import DEPTH_METHODS, DisparityCache, SGBMParams, disparity_to_depth
 
@@ -949,31 +949,8 @@ class Session:
         bad = [i for i in order if not 0 <= i < len(self)]
         if bad:
             raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(self)} frames")
-        return self._iterate(order, wanted, prefetch, workers)
-
-    def _iterate(
-        self, order: list[int], layers: frozenset[str], prefetch: int, workers: int
-    ) -> Iterator[Frame | BadFrame]:
-        if not order:
-            return
-        todo = iter(order)
-        pending: deque[Future] = deque()
-        executor = ThreadPoolExecutor(max_workers=min(workers, prefetch), thread_name_prefix="contact-viz-decode")
-        try:
-            for index in todo:
-                pending.append(executor.submit(self._load, index, layers))
-                if len(pending) >= prefetch:
-                    break
-            while pending:
-                result = pending.popleft().result()
-                index = next(todo, None)
-                if index is not None:
-                    pending.append(executor.submit(self._load, index, layers))
-                yield result
-        finally:
-            for future in pending:
-                future.cancel()
-            executor.shutdown(wait=True, cancel_futures=True)
+        return prefetched(functools.partial(self._load, layers=wanted), order, prefetch,
+                          workers=min(workers, prefetch), thread_name="contact-viz-decode")
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
