@@ -29,6 +29,7 @@ writes into the session directory (the SGBM cache lives in the cache folder).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import io
@@ -582,19 +583,29 @@ def _invalid_to_nan(depth_m: np.ndarray) -> np.ndarray:
     return depth_m
 
 
-def _load_float_npy(path: Path, what: str) -> np.ndarray:
-    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``."""
+@contextlib.contextmanager
+def _loading(path: Path, what: str) -> Iterator[None]:
+    """Turn a failure to open or parse ``path`` inside the block into one SessionError naming it."""
     try:
-        raw = np.load(path, allow_pickle=False)
+        yield
     except FileNotFoundError as exc:
         raise SessionError(path, f"expected {what}, file missing") from exc
     except _DECODE_ERRORS as exc:
         raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
-    is_float = isinstance(raw, np.ndarray) and raw.dtype.kind == "f" and raw.dtype.itemsize in (4, 8)
-    if not is_float or raw.ndim != 2:
-        shape = getattr(raw, "shape", None)
-        dtype = getattr(raw, "dtype", type(raw).__name__)
+
+
+def _check_float_2d(path: Path, what: str, dtype: object, shape: object) -> None:
+    """SessionError unless ``dtype``/``shape`` describe a 2-D float32 or float64 array."""
+    is_float = isinstance(dtype, np.dtype) and dtype.kind == "f" and dtype.itemsize in (4, 8)
+    if not is_float or not isinstance(shape, tuple) or len(shape) != 2:
         raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+
+
+def _load_float_npy(path: Path, what: str) -> np.ndarray:
+    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``."""
+    with _loading(path, what):
+        raw = np.load(path, allow_pickle=False)
+    _check_float_2d(path, what, getattr(raw, "dtype", type(raw).__name__), getattr(raw, "shape", None))
     return np.ascontiguousarray(raw, dtype=np.float32)
 
 
@@ -632,26 +643,15 @@ def read_depth_m(path: Path) -> np.ndarray:
     raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
 
 
-def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, int]) -> np.ndarray:
-    """Rows ``row0`` to ``row1 - 1`` of a depth .npy of ``image_size`` (H, W), as a writable
-    (row1 - row0, W) float32 array in metres, values as stored; only those rows are read.
-    SessionError naming the file for a missing, malformed or truncated file or another shape."""
+def read_depth_rows_m(path: Path, row0: int, row1: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """Rows ``row0`` to ``row1 - 1`` of a depth .npy, as a writable (row1 - row0, W) float32 array
+    in metres, values as stored, and the stored map's (H, W); only those rows are read.
+    SessionError naming the file for a missing, malformed or truncated file."""
     what = "a 2-D float32 depth array in metres (.npy)"
-    try:
+    with _loading(path, what):
         rows, shape = read_npy_rows(path, row0, row1)
-    except FileNotFoundError as exc:
-        raise SessionError(path, f"expected {what}, file missing") from exc
-    except (OSError, ValueError) as exc:
-        raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
-    if rows.dtype.kind != "f" or rows.dtype.itemsize not in (4, 8):
-        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {rows.dtype} with shape {shape}")
-    if shape != tuple(image_size):
-        raise SessionError(
-            path,
-            f"expected a depth map of {image_size[0]}x{image_size[1]} px (height x width, as the left images), "
-            f"found {shape[0]}x{shape[1]}",
-        )
-    return np.ascontiguousarray(rows, dtype=np.float32)
+    _check_float_2d(path, what, rows.dtype, shape)
+    return np.ascontiguousarray(rows, dtype=np.float32), shape
 
 
 def read_disparity_px(path: Path) -> np.ndarray:
@@ -774,13 +774,14 @@ class Session:
 
     # ---- per-frame decoding ----
 
-    def _check_shape(self, path: Path, array: np.ndarray, what: str) -> None:
-        if array.shape[:2] != self.image_size:
+    def _check_shape(self, path: Path, shape: tuple[int, ...], what: str) -> None:
+        """SessionError unless ``shape`` (an array's, channels ignored) is the left images' (H, W)."""
+        if tuple(shape[:2]) != self.image_size:
             raise SessionError(
                 path,
                 f"expected a {what} of {self.image_size[0]}x{self.image_size[1]} px "
                 "(height x width, as the left images), "
-                f"found {array.shape[0]}x{array.shape[1]}",
+                f"found {shape[0]}x{shape[1]}",
             )
 
     def _layer_path(self, files: dict[str, Path], stem: str, expected: Path, what: str) -> Path:
@@ -803,7 +804,7 @@ class Session:
             expected = self.root / side / f"{stem}.png"
             path = self._layer_path(files, stem, expected, f"a {side} image")
             rgb = read_rgb(path)
-            self._check_shape(path, rgb, f"{side} image")
+            self._check_shape(path, rgb.shape, f"{side} image")
             if self.rectification is not None:
                 rgb = self.rectification.apply(side, rgb)
             decoded[side] = rgb
@@ -813,7 +814,7 @@ class Session:
         expected = self.root / "masks" / f"{stem}.png"
         path = self._layer_path(self._mask_files, stem, expected, "a tool mask PNG")
         tool_mask = read_tool_mask(path, self.object_id)
-        self._check_shape(path, tool_mask, "tool mask")
+        self._check_shape(path, tool_mask.shape, "tool mask")
         if self.rectification is not None:
             tool_mask = self.rectification.apply("left", tool_mask, nearest=True)
         return tool_mask
@@ -827,7 +828,7 @@ class Session:
                 "a depth map (.npy float32 m or .png uint16 mm)",
             )
             depth_m = read_depth_m(path)
-            self._check_shape(path, depth_m, "depth map")
+            self._check_shape(path, depth_m.shape, "depth map")
             if self.rectification is not None:
                 depth_m = self.rectification.apply("left", depth_m, nearest=True)
             return depth_m, "file"
@@ -836,7 +837,7 @@ class Session:
                 self._depth_files, stem, self.root / "disparity" / f"{stem}.npy", "a disparity map (.npy float32 px)"
             )
             disparity = read_disparity_px(path)
-            self._check_shape(path, disparity, "disparity map")
+            self._check_shape(path, disparity.shape, "disparity map")
             return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), "file"
         left_path = self._left_files[stem]
         right_path = self._layer_path(
@@ -883,7 +884,8 @@ class Session:
         try:
             path = self._depth_files.get(stem) if self.depth_source == "depth" else None
             if path is not None and path.suffix.lower() == ".npy" and self.rectification is None:
-                depth_m = read_depth_rows_m(path, row0, row1, self.image_size)
+                depth_m, shape = read_depth_rows_m(path, row0, row1)
+                self._check_shape(path, shape, "depth map")
             else:
                 depth_m, _ = self._depth(stem, {})
                 depth_m = depth_m[row0:row1]
