@@ -71,3 +71,17 @@ def test_malformed_files(tmp_path):
         read_npy_rows(path, 5, 11)
     with pytest.raises(FileNotFoundError):
         read_npy_rows(tmp_path / "missing.npy", 0, 1)
+
+
+def test_check_sees_the_header_before_any_row(tmp_path):
+    path = tmp_path / "a.npy"
+    np.save(path, np.zeros((4, 6), np.float32))
+    seen = []
+    rows, shape = read_npy_rows(path, 1, 3, check=lambda dtype, shape: seen.append((dtype, shape)))
+    assert seen == [(np.dtype(np.float32), (4, 6))] and rows.shape == (2, 6)
+
+    def refuse(dtype, shape):
+        raise LookupError(f"not {shape}")
+
+    with pytest.raises(LookupError, match=r"not \(4, 6\)"):
+        read_npy_rows(path, 0, 9, check=refuse)  # before the rows are found out of range

@@ -254,6 +254,10 @@ def test_load_depth_rows_bad_files_are_bad_frames(tmp_path):
     # The same problems, found by the whole-frame reader too.
     for index in expected:
         assert isinstance(s.load_frame(index, layers=("depth",)), BadFrame)
+    # A map shorter than the rows asked for: still the shape, not the rows, is what is wrong.
+    np.save(root / "depth" / "1.npy", np.zeros((3, W), np.float32))
+    bad = open_session(root).load_depth_rows(0, 2, H)
+    assert isinstance(bad, BadFrame) and f"expected a depth map of {H}x{W} px" in bad.reason and f"found 3x{W}" in bad.reason
     os.remove(root / "depth" / "1.npy")
     bad = open_session(root).load_depth_rows(0, 0, 3)
     assert isinstance(bad, BadFrame) and "missing" in bad.reason

@@ -12,6 +12,7 @@ import functools
 import io
 import os
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -53,16 +54,22 @@ def read_header(handle) -> tuple[int, np.dtype, tuple[int, ...], bool]:
     return len(prefix), dtype, shape, fortran_order
 
 
-def read_npy_rows(path: str | Path, row0: int, row1: int) -> tuple[np.ndarray, tuple[int, int]]:
+def read_npy_rows(
+    path: str | Path, row0: int, row1: int, check: Callable[[np.dtype, tuple[int, ...]], None] | None = None,
+) -> tuple[np.ndarray, tuple[int, int]]:
     """Rows ``row0`` to ``row1 - 1`` of the 2-D array stored in the .npy file ``path``, as a
     (row1 - row0, W) array of the file's dtype, and the stored array's full (H, W) shape.
 
-    Only those rows are read. Raises ValueError when the file does not hold a 2-D, C-ordered,
-    non-object array, when it is shorter than its header says, or when the rows are out of
-    range; OSError when it cannot be opened or read.
+    Only those rows are read. ``check(dtype, shape)``, when given, is called with the stored
+    array's dtype and shape as soon as the header is read; what it raises propagates. Raises
+    ValueError when the file does not hold a 2-D, C-ordered, non-object array, when it is
+    shorter than its header says, or when the rows are out of range; OSError when it cannot
+    be opened or read.
     """
     with open(path, "rb", buffering=0) as handle:
         offset, dtype, shape, fortran_order = read_header(handle)
+        if check is not None:
+            check(dtype, shape)
         if len(shape) != 2 or fortran_order or dtype.hasobject:
             order = "Fortran" if fortran_order else "C"
             raise ValueError(f"expected a 2-D C-ordered numeric array, found shape {shape}, dtype {dtype}, "

@@ -588,6 +588,8 @@ def _loading(path: Path, what: str) -> Iterator[None]:
     """Turn a failure to open or parse ``path`` inside the block into one SessionError naming it."""
     try:
         yield
+    except SessionError:
+        raise  # already names the file
     except FileNotFoundError as exc:
         raise SessionError(path, f"expected {what}, file missing") from exc
     except _DECODE_ERRORS as exc:
@@ -599,6 +601,17 @@ def _check_float_2d(path: Path, what: str, dtype: object, shape: object) -> None
     is_float = isinstance(dtype, np.dtype) and dtype.kind == "f" and dtype.itemsize in (4, 8)
     if not is_float or not isinstance(shape, tuple) or len(shape) != 2:
         raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+
+
+def _check_image_shape(path: Path, shape: tuple[int, ...], image_size: tuple[int, int], what: str) -> None:
+    """SessionError unless ``shape`` (an array's, channels ignored) is ``image_size`` (H, W),
+    the left images' size."""
+    if tuple(shape[:2]) != tuple(image_size):
+        raise SessionError(
+            path,
+            f"expected a {what} of {image_size[0]}x{image_size[1]} px (height x width, as the left images), "
+            f"found {shape[0]}x{shape[1]}",
+        )
 
 
 def _load_float_npy(path: Path, what: str) -> np.ndarray:
@@ -643,15 +656,20 @@ def read_depth_m(path: Path) -> np.ndarray:
     raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
 
 
-def read_depth_rows_m(path: Path, row0: int, row1: int) -> tuple[np.ndarray, tuple[int, int]]:
-    """Rows ``row0`` to ``row1 - 1`` of a depth .npy, as a writable (row1 - row0, W) float32 array
-    in metres, values as stored, and the stored map's (H, W); only those rows are read.
-    SessionError naming the file for a missing, malformed or truncated file."""
+def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, int]) -> np.ndarray:
+    """Rows ``row0`` to ``row1 - 1`` of a depth .npy of ``image_size`` (H, W), as a writable
+    (row1 - row0, W) float32 array in metres, values as stored; only those rows are read.
+    SessionError naming the file for a missing, malformed or truncated file, a dtype other than
+    float32/float64, or another shape (checked from the header, before any row is read)."""
     what = "a 2-D float32 depth array in metres (.npy)"
+
+    def check(dtype: np.dtype, shape: tuple[int, ...]) -> None:
+        _check_float_2d(path, what, dtype, shape)
+        _check_image_shape(path, shape, image_size, "depth map")
+
     with _loading(path, what):
-        rows, shape = read_npy_rows(path, row0, row1)
-    _check_float_2d(path, what, rows.dtype, shape)
-    return np.ascontiguousarray(rows, dtype=np.float32), shape
+        rows, _ = read_npy_rows(path, row0, row1, check=check)
+    return np.ascontiguousarray(rows, dtype=np.float32)
 
 
 def read_disparity_px(path: Path) -> np.ndarray:
@@ -776,13 +794,7 @@ class Session:
 
     def _check_shape(self, path: Path, shape: tuple[int, ...], what: str) -> None:
         """SessionError unless ``shape`` (an array's, channels ignored) is the left images' (H, W)."""
-        if tuple(shape[:2]) != self.image_size:
-            raise SessionError(
-                path,
-                f"expected a {what} of {self.image_size[0]}x{self.image_size[1]} px "
-                "(height x width, as the left images), "
-                f"found {shape[0]}x{shape[1]}",
-            )
+        _check_image_shape(path, shape, self.image_size, what)
 
     def _layer_path(self, files: dict[str, Path], stem: str, expected: Path, what: str) -> Path:
         path = files.get(stem)
@@ -884,8 +896,7 @@ class Session:
         try:
             path = self._depth_files.get(stem) if self.depth_source == "depth" else None
             if path is not None and path.suffix.lower() == ".npy" and self.rectification is None:
-                depth_m, shape = read_depth_rows_m(path, row0, row1)
-                self._check_shape(path, shape, "depth map")
+                depth_m = read_depth_rows_m(path, row0, row1, self.image_size)
             else:
                 depth_m, _ = self._depth(stem, {})
                 depth_m = depth_m[row0:row1]
