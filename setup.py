@@ -5,7 +5,7 @@ from setuptools import Extension, setup
 
 setup(
     ext_modules=cythonize(
-        [Extension("contact_viz._patch_kernels", ["src/contact_viz/_patch_kernels.pyx"], extra_compile_args=["-O3"])],
+        [Extension("contact_viz.geometry._patch_kernels", ["src/contact_viz/geometry/_patch_kernels.pyx"], extra_compile_args=["-O3"])],
         language_level=3,
     )
 )

@@ -94,10 +94,10 @@ def parts_per_frame(session_dir: Path) -> tuple[float, float, float]:
 def _print_parts(session_dir: Path) -> None:
     import cv2
 
-    from contact_viz.allocator import keep_freed_memory
+    from contact_viz.pipeline.allocator import keep_freed_memory
     from contact_viz.params import PatchParams
-    from contact_viz.patch import compute_patch, patch_depth_rows
-    from contact_viz.session import open_session
+    from contact_viz.geometry.patch import compute_patch, patch_depth_rows
+    from contact_viz.io.session import open_session
 
     cv2.setNumThreads(1)
     keep_freed_memory()  # as `contact-viz extract` does

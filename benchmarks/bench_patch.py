@@ -3,7 +3,7 @@
 Frames are synthetic: a tissue surface with stereo-like noise and holes, and a tool shaft of
 60-140 px entering from a random image border at a random angle. Prints the median and the
 spread over the frames. As in `contact-viz extract`, OpenCV runs on one thread and glibc keeps
-freed memory for the next frame (contact_viz.allocator).
+freed memory for the next frame (contact_viz.pipeline.allocator).
 Run: .venv/bin/python benchmarks/bench_patch.py [--frames 60]
 """
 
@@ -15,9 +15,9 @@ import time
 import cv2
 import numpy as np
 
-from contact_viz.allocator import keep_freed_memory
+from contact_viz.pipeline.allocator import keep_freed_memory
 from contact_viz.params import PatchParams
-from contact_viz.patch import compute_patch
+from contact_viz.geometry.patch import compute_patch
 
 
 def synthetic_frame(rng: np.random.Generator, height: int = 1080, width: int = 1920):

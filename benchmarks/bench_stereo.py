@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from skimage import data
 
-from contact_viz.stereo import SGBMParams, sgbm_disparity
+from contact_viz.geometry.stereo import SGBMParams, sgbm_disparity
 
 
 def accuracy(left, right, truth, params: SGBMParams, repeats: int) -> tuple[float, float, float]:

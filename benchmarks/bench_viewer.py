@@ -28,10 +28,10 @@ from pathlib import Path
 CHILD = r"""
 import json, resource, sys, time, warnings
 t_start = time.perf_counter()
-from contact_viz.debugger import DebuggerOptions, run_debugger
-from contact_viz.rerun_log import open_recording
-from contact_viz.rerun_log import default_blueprint
-from contact_viz.session import open_session
+from contact_viz.viz.debugger import DebuggerOptions, run_debugger
+from contact_viz.viz.rerun_log import open_recording
+from contact_viz.viz.rerun_log import default_blueprint
+from contact_viz.io.session import open_session
 warnings.simplefilter("ignore")
 session_dir, out, frames = sys.argv[1], sys.argv[2], int(sys.argv[3])
 session = open_session(session_dir)
@@ -56,8 +56,8 @@ def run_child(session: Path, out: Path, frames: int) -> dict:
 
 def decode_and_patch_times(session_dir: Path, frames: int) -> tuple[float, float]:
     """Seconds per frame of decoding mask + depth (one thread) and of compute_patch alone."""
-    from contact_viz.patch import compute_patch
-    from contact_viz.session import open_session
+    from contact_viz.geometry.patch import compute_patch
+    from contact_viz.io.session import open_session
 
     session = open_session(session_dir)
     decode_s = patch_s = 0.0

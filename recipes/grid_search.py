@@ -23,14 +23,14 @@ from rich.progress import Progress
 from sklearn.metrics import average_precision_score, f1_score
 
 from contact_viz import __version__
-from contact_viz.atomic import atomic_write
-from contact_viz.cache import cache_path
-from contact_viz.extract import BadFrameWarning
-from contact_viz.hmm import LosoEnsemble
-from contact_viz.jsonfile import write_json
+from contact_viz.io.atomic import atomic_write
+from contact_viz.io.cache import cache_path
+from contact_viz.pipeline.extract import BadFrameWarning
+from contact_viz.model.hmm import LosoEnsemble
+from contact_viz.io.jsonfile import write_json
 from contact_viz.params import PatchParams, to_dict
-from contact_viz.patch import distance_signal, patch_distance_grid
-from contact_viz.session import BadFrame, open_session
+from contact_viz.geometry.patch import distance_signal, patch_distance_grid
+from contact_viz.io.session import BadFrame, open_session
 
 
 # The default grid: N1 and N2 window sides (px), tau_tool (pixels) and tau_patch (distances).

@@ -19,7 +19,7 @@ Split file (JSON), session names relative to the SESSIONS folder, test sessions 
               {"session": "glove_1",  "category": "new phantom and task"}]}
 
 "train" needs at least two sessions (leave-one-session-out); "category" is one of
-contact_viz.study.CATEGORIES (contact_viz.study reads and checks the file).
+contact_viz.paper.study.CATEGORIES (contact_viz.paper.study reads and checks the file).
 
 Without SESSIONS and SPLIT the synthetic study of scripts/demo.sh is generated and run: six ``cup``
 training sessions (seeds 0-5) and one test session each on ``cup``, ``kidney``, ``liver`` and
@@ -62,17 +62,17 @@ import numpy as np
 
 from contact_viz import __version__
 from contact_viz.baseline import BaselineParams, BaselineWarning, FoldEvent, extract_crops, fit_loso
-from contact_viz.cache import cache_key, default_cache_dir
+from contact_viz.io.cache import cache_key, default_cache_dir
 from contact_viz.errors import SessionError
-from contact_viz.extract import cached_features, feature_arrays
-from contact_viz.hmm import LosoEnsemble
-from contact_viz.jsonfile import write_json
-from contact_viz.metrics import MACRO_ROW, format_table, macro_mean, session_metrics
-from contact_viz.model_file import ContactModel, save_model
+from contact_viz.pipeline.extract import cached_features, feature_arrays
+from contact_viz.model.hmm import LosoEnsemble
+from contact_viz.io.jsonfile import write_json
+from contact_viz.model.metrics import MACRO_ROW, format_table, macro_mean, session_metrics
+from contact_viz.model.model_file import ContactModel, save_model
 from contact_viz.params import LabelParams, PatchParams, read_patch_params, to_dict
-from contact_viz.session import BadFrame, Session, open_session
-from contact_viz.study import CATEGORIES, HeldOutEntry, Split, read_split, write_split
-from contact_viz.tables import write_per_frame, write_table1
+from contact_viz.io.session import BadFrame, Session, open_session
+from contact_viz.paper.study import CATEGORIES, HeldOutEntry, Split, read_split, write_split
+from contact_viz.paper.tables import write_per_frame, write_table1
 
 RECIPES_DIR = Path(__file__).resolve().parent
 sys.path.insert(0, str(RECIPES_DIR))  # recipes/ is not a package
@@ -433,8 +433,8 @@ def figure_frame(study: Study, spec: str | None, test_features: list[Features]) 
 def write_figures(out: Path, study: Study, hmm: MethodResult, rgb: MethodResult, title: str | None,
                   frame_session: Session, frame_index: int, params: PatchParams) -> tuple[list[Path], dict]:
     """timelines.png/.pdf and pipeline.png/.pdf; returns the files and a description of the figure frame."""
-    from contact_viz.figures import TimelineSession, pipeline_figure, save_figure, timelines_figure
-    from contact_viz.patch import compute_patch
+    from contact_viz.viz.figures import TimelineSession, pipeline_figure, save_figure, timelines_figure
+    from contact_viz.geometry.patch import compute_patch
 
     timeline = [TimelineSession(s.name, study.categories[s.name], np.asarray(s.timestamps_s), np.asarray(s.labels),
                                 hmm.posteriors[i], hmm.threshold, rgb.posteriors[i], rgb.threshold)

@@ -15,7 +15,7 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >&2
 fi
 
-# The patch's compiled kernels (src/contact_viz/_patch_kernels.pyx) are built at install time.
+# The patch's compiled kernels (src/contact_viz/geometry/_patch_kernels.pyx) are built at install time.
 if ! command -v cc >/dev/null 2>&1 && ! command -v gcc >/dev/null 2>&1; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   echo "[bootstrap] installing gcc (builds the patch's compiled kernels)" >&2
@@ -31,14 +31,14 @@ fi
 # Re-install only when the build inputs changed since the last successful install (the compiled
 # kernels of contact_viz.patch are built by that install, from setup.py and the .pyx file).
 STAMP="$VENV/.contact-viz-installed"
-WANT="$(cat "$ROOT/pyproject.toml" "$ROOT/setup.py" "$ROOT"/src/contact_viz/*.pyx | sha256sum | cut -d' ' -f1)"
+WANT="$(cat "$ROOT/pyproject.toml" "$ROOT/setup.py" "$ROOT"/src/contact_viz/*/*.pyx | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   echo "[bootstrap] installing packages into $VENV (first run takes about a minute)" >&2
   # The CPU build of torch first: a bare `torch` requirement would pull several GB of CUDA packages.
   "$VENV/bin/pip" install -q torch==2.13.0 2>&1 | grep -v 'is ignored' >&2 || true
   "$VENV/bin/python" -c "import torch" 
   "$VENV/bin/pip" install -q -e "$ROOT[test]" 2>&1 | grep -v 'is ignored' >&2 || true
-  "$VENV/bin/python" -c "import contact_viz._patch_kernels, open3d, rerun, cv2"
+  "$VENV/bin/python" -c "import contact_viz.geometry._patch_kernels, open3d, rerun, cv2"
   echo "$WANT" > "$STAMP"
 fi
 # Byte-compile the package once here (a no-op when up to date): where PYTHONDONTWRITEBYTECODE is

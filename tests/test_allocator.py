@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from contact_viz.allocator import keep_freed_memory
+from contact_viz.pipeline.allocator import keep_freed_memory
 
 # Runs extract's per-frame work (read, patch, features row) over a session in a fresh process
 # and prints the median minor page faults per frame.
@@ -18,11 +18,11 @@ LOOP = """
 import resource, sys
 import numpy as np
 if sys.argv[2] == "keep":
-    from contact_viz.allocator import keep_freed_memory
+    from contact_viz.pipeline.allocator import keep_freed_memory
     assert keep_freed_memory()
-from contact_viz.extract import _FeatureRowsTask
+from contact_viz.pipeline.extract import _FeatureRowsTask
 from contact_viz.params import PatchParams
-from contact_viz.session import open_session
+from contact_viz.io.session import open_session
 session = open_session(sys.argv[1])
 task = _FeatureRowsTask(session, PatchParams(), tuple(range(len(session))))
 faults = []

@@ -7,7 +7,7 @@ import stat
 
 import pytest
 
-from contact_viz.atomic import atomic_write
+from contact_viz.io.atomic import atomic_write
 
 
 def test_replaces_only_on_success(tmp_path):

@@ -35,10 +35,10 @@ from contact_viz.baseline import (
     prepare_batch,
     raw_scores,
 )
-from contact_viz.hmm import select_f1_threshold
-from contact_viz.session import open_session
+from contact_viz.model.hmm import select_f1_threshold
+from contact_viz.io.session import open_session
 from contact_viz.synth import SynthParams, generate_session
-from contact_viz.tooltip import crop_centered, tool_tip_xy
+from contact_viz.geometry.tooltip import crop_centered, tool_tip_xy
 
 CROP_PX = 64  # px
 N_FRAMES = 24

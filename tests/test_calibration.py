@@ -1,4 +1,4 @@
-"""Tests for contact_viz.calibration: K.txt, ROS camera_info YAML, OpenCV FileStorage, rectification."""
+"""Tests for contact_viz.io.calibration: K.txt, ROS camera_info YAML, OpenCV FileStorage, rectification."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from contact_viz.calibration import (
+from contact_viz.io.calibration import (
     Rectification,
     read_calibration,
     read_k_txt,

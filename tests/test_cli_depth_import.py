@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contact_viz.session import open_session
+from contact_viz.io.session import open_session
 from contact_viz.synth import SynthParams, generate_session
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contact_viz.extract import (FEATURE_COLUMNS, REASON_BAD_FRAME, BadFrameWarning, extract_features,
+from contact_viz.pipeline.extract import (FEATURE_COLUMNS, REASON_BAD_FRAME, BadFrameWarning, extract_features,
                                  iter_frame_results, write_features)
 from contact_viz.params import PatchParams, to_dict
-from contact_viz.patch import compute_patch
-from contact_viz.session import open_session
+from contact_viz.geometry.patch import compute_patch
+from contact_viz.io.session import open_session
 from contact_viz.synth import SynthParams, generate_session
 
 CLI = [sys.executable, "-m", "contact_viz.cli"]
@@ -152,7 +152,7 @@ def test_extract_does_not_import_heavy_modules(cup_session, tmp_path):
 
 
 def test_read_features_config_round_trip_and_errors(tmp_path):
-    from contact_viz.extract import read_features_config
+    from contact_viz.pipeline.extract import read_features_config
 
     params = PatchParams(n2=15, tau_tool=20)
     path = tmp_path / "features.csv"
@@ -210,7 +210,7 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
     unreadable files included)."""
     import cv2
 
-    from contact_viz.extract import _FeatureRowsTask, feature_row
+    from contact_viz.pipeline.extract import _FeatureRowsTask, feature_row
 
     root, height, width = tmp_path / "s", 97, 131
     rng = np.random.default_rng(7)

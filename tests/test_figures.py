@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from contact_viz import style
-from contact_viz.figures import (
+from contact_viz.viz import style
+from contact_viz.viz.figures import (
     TimelineSession,
     layer_overlay_rgba,
     pipeline_figure,
@@ -14,7 +14,7 @@ from contact_viz.figures import (
     timelines_figure,
 )
 from contact_viz.params import PatchParams
-from contact_viz.patch import LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE, compute_patch
+from contact_viz.geometry.patch import LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE, compute_patch
 
 HEIGHT, WIDTH = 60, 80  # px
 TISSUE_M, TOOL_M = 0.100, 0.095  # depth of the flat tissue and of the tool, m

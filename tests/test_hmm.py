@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from sklearn.metrics import f1_score
 
-from contact_viz.hmm import (
+from contact_viz.model.hmm import (
     HMMParams,
     LosoEnsemble,
     NotFittedError,

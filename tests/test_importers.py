@@ -1,4 +1,4 @@
-"""Tests for contact_viz.importers: small dVRK data_collection and Yang et al. 2024 layouts in tmp_path."""
+"""Tests for contact_viz.io.importers: small dVRK data_collection and Yang et al. 2024 layouts in tmp_path."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 from PIL import Image
 
 from contact_viz.errors import SessionError
-from contact_viz.importers import import_dvrk, import_yang2024, run_import_command
-from contact_viz.session import open_session
+from contact_viz.io.importers import import_dvrk, import_yang2024, run_import_command
+from contact_viz.io.session import open_session
 
 H, W = 24, 40  # image size, px
 T0_NS = 1_737_146_000_000_000_000  # an epoch time, ns

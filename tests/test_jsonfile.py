@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from contact_viz.jsonfile import read_json, write_json
+from contact_viz.io.jsonfile import read_json, write_json
 
 
 def test_round_trip_with_final_newline_and_no_temp_file(tmp_path):

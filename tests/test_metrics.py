@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from contact_viz.metrics import MACRO_ROW, format_table, macro_mean, session_metrics
+from contact_viz.model.metrics import MACRO_ROW, format_table, macro_mean, session_metrics
 
 # labelled frames (the -1 frame is dropped):  pos 0.9 0.6 0.3 | neg 0.7 0.2 0.1 0.3
 HAND_LABELS = np.array([1, 1, 1, 0, 0, 0, 0, -1])

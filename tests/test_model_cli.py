@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from sklearn.metrics import average_precision_score, f1_score, roc_auc_score
 
-from contact_viz.hmm import LosoEnsemble
-from contact_viz.model_file import ContactModel, load_model, save_model
+from contact_viz.model.hmm import LosoEnsemble
+from contact_viz.model.model_file import ContactModel, load_model, save_model
 from contact_viz.params import LabelParams, PatchParams
 from contact_viz.synth import SynthParams, generate_session
 

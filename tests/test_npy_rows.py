@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from contact_viz.npy_rows import read_npy_rows
+from contact_viz.io.npy_rows import read_npy_rows
 
 
 @pytest.mark.parametrize("dtype", ["<f4", ">f4", "<f8", "<u2"])

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image, PngImagePlugin
 
-from contact_viz.palette_png import PNG_SIGNATURE, is_palette_png, palette_indices
-from contact_viz.session import read_tool_mask
+from contact_viz.io.palette_png import PNG_SIGNATURE, is_palette_png, palette_indices
+from contact_viz.io.session import read_tool_mask
 
 
 def palette_png(ids: np.ndarray, palette: list[int], **save) -> bytes:

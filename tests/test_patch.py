@@ -9,7 +9,7 @@ import pytest
 from scipy.ndimage import distance_transform_edt
 
 from contact_viz.params import PatchParams
-from contact_viz.patch import (
+from contact_viz.geometry.patch import (
     LAYER_BAND,
     LAYER_INTERIOR,
     LAYER_RING,
@@ -329,7 +329,7 @@ def test_params_validation():
 def test_distance_grid_equals_one_call_per_parameter_set(seed):
     from itertools import product
 
-    from contact_viz.patch import patch_distance_grid
+    from contact_viz.geometry.patch import patch_distance_grid
 
     rng = np.random.default_rng(500 + seed)
     depth, tool = random_frame(rng, 40, 52)
@@ -345,7 +345,7 @@ def test_disc_dilation_by_rectangles_equals_disc_kernel(radius_px):
     """The staircase-of-rectangles dilation is exactly the dilation by the disc kernel."""
     import cv2
 
-    from contact_viz.patch import _dilate_disc, _disc
+    from contact_viz.geometry.patch import _dilate_disc, _disc
 
     rng = np.random.default_rng(int(radius_px * 100))
     mask = (rng.random((60, 70)) < 0.02).astype(np.uint8)

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from contact_viz import _patch_kernels as kernels
-from contact_viz.patch import (LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE, _dilate_disc,
+from contact_viz.geometry import _patch_kernels as kernels
+from contact_viz.geometry.patch import (LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE, _dilate_disc,
                                _disc)
 
 IDS = (LAYER_BACKGROUND, LAYER_INTERIOR, LAYER_TOOL_EDGE, LAYER_RING, LAYER_BAND)

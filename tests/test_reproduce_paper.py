@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contact_viz.metrics import MACRO_ROW, METRIC_KEYS, session_metrics
+from contact_viz.model.metrics import MACRO_ROW, METRIC_KEYS, session_metrics
 
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "reproduce_paper.py"
 OUTPUTS = ("table1.md", "table1.tex", "table1.csv", "timelines.png", "timelines.pdf", "pipeline.png",

@@ -1,4 +1,4 @@
-"""Tests for contact_viz.session: tiny synthetic sessions written to tmp_path."""
+"""Tests for contact_viz.io.session: tiny synthetic sessions written to tmp_path."""
 
 from __future__ import annotations
 
@@ -16,14 +16,14 @@ from PIL import Image
 
 from contact_viz.errors import SessionError
 from contact_viz.params import LabelParams
-from contact_viz.stereo import SGBMParams
-from contact_viz.session import (
+from contact_viz.geometry.stereo import SGBMParams
+from contact_viz.io.session_files import nearest_indices
+from contact_viz.io.session import (
     BadFrame,
     Frame,
     SessionWarning,
     missing_inputs,
     natural_key,
-    nearest_indices,
     open_session,
     read_depth_m,
     read_tool_mask,
@@ -317,7 +317,7 @@ def test_nearest_indices_ties_and_edges():
 def test_only_requested_layers(tmp_path, monkeypatch):
     make_session(tmp_path / "s")
     s = open_session(tmp_path / "s")
-    import contact_viz.session as session_module
+    import contact_viz.io.session as session_module
 
     calls = []
     real = session_module.read_rgb
@@ -606,7 +606,7 @@ def test_sgbm_fallback_is_cached_outside_the_session(tmp_path, caplog):
     make_stereo_session(root)
     cache = tmp_path / "cache"
     before = listing(root)
-    with caplog.at_level("INFO", logger="contact_viz.session"):
+    with caplog.at_level("INFO", logger="contact_viz.io.session"):
         s = open_session(root, cache_dir=cache)
     assert s.depth_source == "sgbm" and "SGBM" in s.depth_note and "FoundationStereo" in s.depth_note
     assert s.depth_note in caplog.text

@@ -1,4 +1,4 @@
-"""Tests for contact_viz.stereo: SGBM disparity (synthetic and Middlebury), depth, cache, precompute."""
+"""Tests for contact_viz.geometry.stereo: SGBM disparity (synthetic and Middlebury), depth, cache, precompute."""
 
 from __future__ import annotations
 
@@ -11,16 +11,9 @@ import pytest
 from PIL import Image
 
 from contact_viz.errors import SessionError
-from contact_viz.stereo import (
-    DisparityCache,
-    SGBMParams,
-    _decode,
-    _encode,
-    disparity_to_depth,
-    left_right_check,
-    run_depth_command,
-    sgbm_disparity,
-)
+from contact_viz.geometry.stereo import SGBMParams, disparity_to_depth, left_right_check, sgbm_disparity
+from contact_viz.io.depth_cache import DisparityCache, _decode, _encode
+from contact_viz.pipeline.depth import run_depth_command
 
 # Middlebury 2014 "Motorcycle" as shipped (4x down-sampled) by scikit-image; calibration from
 # the docstring of skimage.data.stereo_motorcycle.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from contact_viz.study import CATEGORIES, HeldOutEntry, Split, read_split, write_split
+from contact_viz.paper.study import CATEGORIES, HeldOutEntry, Split, read_split, write_split
 
 
 def test_split_round_trip(tmp_path):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from contact_viz.tooltip import TipParams, crop_centered, tool_tip_xy
+from contact_viz.geometry.tooltip import TipParams, crop_centered, tool_tip_xy
 
 HEIGHT, WIDTH = 96, 160  # px
 

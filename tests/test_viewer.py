@@ -20,16 +20,16 @@ from PIL import Image
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from contact_viz import rerun_log  # noqa: E402
-from contact_viz.debugger import DebuggerOptions, run_debugger, select_frames  # noqa: E402
-from contact_viz.rerun_log import open_recording  # noqa: E402
-from contact_viz.diagnostics import DIAGNOSTIC_CODES, DiagnosticParams, DiagnosticsTracker  # noqa: E402
-from contact_viz.extract import BadFrameWarning  # noqa: E402
-from contact_viz.hmm import LosoEnsemble  # noqa: E402
-from contact_viz.model_file import ContactModel  # noqa: E402
+from contact_viz.viz import rerun_log  # noqa: E402
+from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames  # noqa: E402
+from contact_viz.viz.rerun_log import open_recording  # noqa: E402
+from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, DiagnosticParams, DiagnosticsTracker  # noqa: E402
+from contact_viz.pipeline.extract import BadFrameWarning  # noqa: E402
+from contact_viz.model.hmm import LosoEnsemble  # noqa: E402
+from contact_viz.model.model_file import ContactModel  # noqa: E402
 from contact_viz.params import LabelParams, PatchParams  # noqa: E402
-from contact_viz.patch import LAYER_BAND, LAYER_INTERIOR, REASON_EMPTY_MASK, compute_patch  # noqa: E402
-from contact_viz.pointcloud import (  # noqa: E402
+from contact_viz.geometry.patch import LAYER_BAND, LAYER_INTERIOR, REASON_EMPTY_MASK, compute_patch  # noqa: E402
+from contact_viz.geometry.pointcloud import (  # noqa: E402
     CloudParams,
     backproject,
     decimated_intrinsics,
@@ -39,8 +39,8 @@ from contact_viz.pointcloud import (  # noqa: E402
     sample_colors,
     voxel_downsample,
 )
-from contact_viz.session import open_session  # noqa: E402
-from contact_viz.style import DIAGNOSTIC_STYLES, LAYER_STYLES, SERIES_STYLES, layer_style  # noqa: E402
+from contact_viz.io.session import open_session  # noqa: E402
+from contact_viz.viz.style import DIAGNOSTIC_STYLES, LAYER_STYLES, SERIES_STYLES, layer_style  # noqa: E402
 
 H, W = 180, 320  # test image size, px
 N_FRAMES = 12
@@ -420,9 +420,9 @@ def test_killed_process_leaves_what_was_flushed(session_dir, tmp_path):
     script = textwrap.dedent(f"""
         import os, signal, warnings
         warnings.simplefilter("ignore")
-        from contact_viz.debugger import DebuggerOptions, run_debugger
-        from contact_viz.rerun_log import open_recording
-        from contact_viz.session import open_session
+        from contact_viz.viz.debugger import DebuggerOptions, run_debugger
+        from contact_viz.viz.rerun_log import open_recording
+        from contact_viz.io.session import open_session
         def kill(done, total):
             if done == 6:
                 os.kill(os.getpid(), signal.SIGKILL)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from contact_viz.workers import WorkerError, chunk_bounds, run_chunks
+from contact_viz.pipeline.workers import WorkerError, chunk_bounds, run_chunks
 
 
 @dataclass(frozen=True)

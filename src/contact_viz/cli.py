@@ -66,7 +66,7 @@ CacheDir = Annotated[Optional[Path], typer.Option(help="Cache of features and co
 
 def _resolve_params(params_file: Optional[Path], contact_force: float):
     """PatchParams from --params (defaults otherwise) and LabelParams from --contact-force; exits on error."""
-    from .params import LabelParams, PatchParams, read_patch_params
+    from contact_viz.params import LabelParams, PatchParams, read_patch_params
 
     try:
         params = PatchParams() if params_file is None else read_patch_params(params_file)
@@ -89,17 +89,17 @@ def extract(
         "at most 8].")] = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
-    from .allocator import keep_freed_memory
-    from .workers import DEFAULT_PROCESSES, WorkerPool
+    from contact_viz.pipeline.allocator import keep_freed_memory
+    from contact_viz.pipeline.workers import DEFAULT_PROCESSES, WorkerPool
 
     keep_freed_memory()
     # The workers start first, so that they import NumPy, OpenCV and the patch while this
     # process does the same and opens the session.
     with WorkerPool((processes or DEFAULT_PROCESSES) - 1, setup=keep_freed_memory,
-                    preload=("contact_viz.extract",)) as pool:
-        from .errors import SessionError
-        from .extract import BadFrameWarning, extract_features, run_config, write_features
-        from .session import open_session
+                    preload=("contact_viz.pipeline.extract",)) as pool:
+        from contact_viz.errors import SessionError
+        from contact_viz.pipeline.extract import BadFrameWarning, extract_features, run_config, write_features
+        from contact_viz.io.session import open_session
 
         params, label_params = _resolve_params(params_file, contact_force)
         try:
@@ -140,7 +140,7 @@ def synth(
     overwrite: Annotated[bool, typer.Option(help="Replace the files of an existing session there.")] = False,
 ) -> None:
     """Make a synthetic session with known truth (stereo renders, masks, depth, force, truth.csv)."""
-    from .synth import PHANTOMS, SynthParams, generate_session
+    from contact_viz.synth import PHANTOMS, SynthParams, generate_session
 
     if phantom not in PHANTOMS:
         _fail(f"--phantom must be one of {', '.join(PHANTOMS)}; got {phantom!r}")
@@ -167,12 +167,12 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     """Features for fit / evaluate / predict, each source either a session directory (extracted
     with ``params``, cached) or a features CSV written by `contact-viz extract`, whose saved
     configuration must have the same patch parameters as ``params``."""
-    from .allocator import keep_freed_memory
-    from .errors import SessionError
-    from .extract import cached_features, feature_arrays, read_features, read_features_config
-    from .model_file import params_mismatch
-    from .session import open_session
-    from .workers import DEFAULT_PROCESSES
+    from contact_viz.pipeline.allocator import keep_freed_memory
+    from contact_viz.errors import SessionError
+    from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
+    from contact_viz.model.model_file import params_mismatch
+    from contact_viz.io.session import open_session
+    from contact_viz.pipeline.workers import DEFAULT_PROCESSES
 
     keep_freed_memory()
     out = []
@@ -217,8 +217,8 @@ def fit(
     cache_dir: CacheDir = None,
 ) -> None:
     """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions."""
-    from .hmm import LosoEnsemble
-    from .model_file import ContactModel, save_model
+    from contact_viz.model.hmm import LosoEnsemble
+    from contact_viz.model.model_file import ContactModel, save_model
 
     params, label_params = _resolve_params(params_file, contact_force)
     if len(train_sessions) < 2:
@@ -243,7 +243,7 @@ def fit(
 
 
 def _model_and_features(model_path: Path, sources: list[Path], object_id, cache_dir):
-    from .model_file import load_model
+    from contact_viz.model.model_file import load_model
 
     try:
         model = load_model(model_path)
@@ -268,9 +268,9 @@ def evaluate(
     """Score held-out sessions: the Table-1 metrics per session and their macro mean."""
     import csv
 
-    from .atomic import atomic_write
-    from .evaluation import PER_FRAME_COLUMNS, metrics_table, per_frame_rows, score_session
-    from .metrics import format_table
+    from contact_viz.io.atomic import atomic_write
+    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, metrics_table, per_frame_rows, score_session
+    from contact_viz.model.metrics import format_table
 
     model, features = _model_and_features(model_path, test_sessions, object_id, cache_dir)
     try:
@@ -292,9 +292,9 @@ def evaluate(
             writer.writeheader()
             writer.writerows(per_frame_rows(scores))
     if json_out is not None:
-        from . import __version__
-        from .jsonfile import write_json
-        from .params import to_dict
+        from contact_viz import __version__
+        from contact_viz.io.jsonfile import write_json
+        from contact_viz.params import to_dict
 
         write_json(json_out, {"contact_viz_version": __version__, "model": str(model_path.resolve()),
                               "threshold": model.threshold, "patch_params": to_dict(model.patch_params),
@@ -312,8 +312,8 @@ def predict(
     """Contact posteriors for a session, with or without labels."""
     import csv
 
-    from .atomic import atomic_write
-    from .evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
+    from contact_viz.io.atomic import atomic_write
+    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
 
     model, (features,) = _model_and_features(model_path, [session_dir], object_id, cache_dir)
     scores = score_session(model.predict_proba, model.threshold, features.name, features.frames,
@@ -365,14 +365,14 @@ def view(
     """Run the pipeline frame by frame and log everything to one Rerun timeline.
 
     With --model the model's patch parameters are used (--params is then an error if it differs)."""
-    from .errors import SessionError
-    from .session import open_session
+    from contact_viz.errors import SessionError
+    from contact_viz.io.session import open_session
 
     params, label_params = _resolve_params(params_file, contact_force)
     model = None
     try:
         if model_path is not None:
-            from .model_file import check_params, load_model
+            from contact_viz.model.model_file import check_params, load_model
 
             model = load_model(model_path)
             if params_file is not None:
@@ -382,9 +382,9 @@ def view(
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
-    from .debugger import DebuggerOptions, run_debugger
-    from .pointcloud import CloudParams
-    from .rerun_log import default_blueprint, open_recording
+    from contact_viz.viz.debugger import DebuggerOptions, run_debugger
+    from contact_viz.geometry.pointcloud import CloudParams
+    from contact_viz.viz.rerun_log import default_blueprint, open_recording
 
     if spawn is None:
         spawn = _has_display() and save is None and not serve and connect is None
@@ -443,8 +443,8 @@ def depth(
     workers: Annotated[int, typer.Option(min=1, help="Frames computed in parallel.")] = 2,
 ) -> None:
     """Precompute the depth of a session that has no depth/ or disparity/ (SGBM, cached outside it)."""
-    from .errors import SessionError
-    from .stereo import run_depth_command
+    from contact_viz.errors import SessionError
+    from contact_viz.pipeline.depth import run_depth_command
 
     with _progress() as progress:
         task = progress.add_task(f"depth {session_dir.name}", total=None)
@@ -471,8 +471,8 @@ def import_(
     copy: Annotated[bool, typer.Option(help="Copy the images instead of linking them.")] = False,
 ) -> None:
     """Convert a recorder's output (dVRK data_collection, Yang et al. 2024) into a session."""
-    from .errors import SessionError
-    from .importers import run_import_command
+    from contact_viz.errors import SessionError
+    from contact_viz.io.importers import run_import_command
 
     try:
         lines = run_import_command(kind, src, out_session, force_topic=force_topic, video=video,

@@ -15,3 +15,7 @@ class SessionError(ValueError):
         self.path = Path(path)
         self.expected = expected
         super().__init__(f"{self.path}: {expected}")
+
+
+class SessionWarning(UserWarning):
+    """Something in a session is odd but usable (e.g. a CSV row for a stem not in left/)."""

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from .jsonfile import read_json
+from contact_viz.io.jsonfile import read_json
 
 T = TypeVar("T")
 PATCH_PARAMS_EXPECTED = 'expected a JSON object of PatchParams fields or {"patch_params": {...}}'

@@ -1,7 +1,7 @@
 """A band of rows of a 2-D .npy array, read without reading the rest of the file.
 
 The patch of a frame needs the depth only in the rows around the tool (about 40% of a 1080p
-frame), so `contact-viz extract` reads just those (contact_viz.session.Session.load_depth_rows).
+frame), so `contact-viz extract` reads just those (contact_viz.io.session.Session.load_depth_rows).
 The .npy header is parsed with NumPy's own reader (numpy.lib.format); the rows are read with
 one positioned read into the output array.
 """

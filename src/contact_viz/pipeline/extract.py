@@ -21,15 +21,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import __version__
-from .atomic import atomic_write
-from .jsonfile import read_json, write_json
-from .params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
-from .patch import PatchResult, compute_patch, patch_depth_rows
-from .session import BadFrame, Frame, Session
+from contact_viz import __version__
+from contact_viz.io.atomic import atomic_write
+from contact_viz.io.jsonfile import read_json, write_json
+from contact_viz.params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
+from contact_viz.geometry.patch import PatchResult, compute_patch, patch_depth_rows
+from contact_viz.io.session import BadFrame, Frame, Session
 
 if TYPE_CHECKING:
-    from .workers import WorkerPool
+    from contact_viz.pipeline.workers import WorkerPool
 
 REASON_BAD_FRAME = "bad_frame"
 DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # frames whose patches are computed at once (threads)
@@ -149,7 +149,7 @@ def feature_row(session: Session, result: FrameResult, patch_row0: int = 0) -> d
 @dataclass(frozen=True)
 class _FeatureRowsTask:
     """The features rows of positions ``lo`` to ``hi - 1`` of ``indices``, one frame at a time
-    (a :class:`contact_viz.workers.ChunkTask`: pickled once into each worker process).
+    (a :class:`contact_viz.pipeline.workers.ChunkTask`: pickled once into each worker process).
 
     Each frame's depth is read only in the rows the patch needs (patch.patch_depth_rows); the
     rows equal those of :func:`iter_frame_results` on whole frames.
@@ -190,7 +190,7 @@ def extract_features(
     spread over this process and ``processes - 1`` spawned ones (threads cannot use more than
     about one core for this work); ``pool`` instead shares them with workers started beforehand,
     which import while the caller opens the session (the CLI starts
-    ``WorkerPool(n, setup=keep_freed_memory, preload=("contact_viz.extract",))`` first thing).
+    ``WorkerPool(n, setup=keep_freed_memory, preload=("contact_viz.pipeline.extract",))`` first thing).
     Either way the rows are the same.
     """
     if processes == 1 and pool is None:
@@ -200,8 +200,8 @@ def extract_features(
             if progress is not None:
                 progress(done)
         return rows
-    from .allocator import keep_freed_memory
-    from .workers import run_chunks
+    from contact_viz.pipeline.allocator import keep_freed_memory
+    from contact_viz.pipeline.workers import run_chunks
 
     order = tuple(range(len(session))) if indices is None else tuple(int(i) for i in indices)
     bad = [i for i in order if not 0 <= i < len(session)]
@@ -282,10 +282,10 @@ def cached_features(
     """Features of ``session``, reused from the cache when its files and the parameters are unchanged.
 
     Returns ``(rows, from_cache)``. The cache lives outside the session directory
-    (:func:`contact_viz.cache.default_cache_dir`, or ``cache_dir``). ``processes``: as in
+    (:func:`contact_viz.io.cache.default_cache_dir`, or ``cache_dir``). ``processes``: as in
     :func:`extract_features`.
     """
-    from .cache import cache_path
+    from contact_viz.io.cache import cache_path
 
     key = {"patch_params": to_dict(params), "label_params": to_dict(label_params), "object_id": session.object_id,
            "depth": session.depth_config}

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from contact_viz.params import PatchParams
-from contact_viz.patch import LAYER_INTERIOR, PatchResult
+from contact_viz.geometry.patch import LAYER_INTERIOR, PatchResult
 
 __all__ = [
     "Cloud",

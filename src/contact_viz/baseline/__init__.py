@@ -8,7 +8,7 @@ last layer replaced.) ``image_size`` is set to the crop size so the "same" paddi
 convolutions is computed for the real input size.
 
 Input: a ``crop_px`` (234) square RGB crop centred on the tool tip estimated from the tool mask
-(``contact_viz.tooltip``: the mask pixel farthest from where the tool enters the image). Frames
+(``contact_viz.geometry.tooltip``: the mask pixel farthest from where the tool enters the image). Frames
 whose mask gives no tip are cropped at the session's last known tip, or the image centre before
 any tip was found (causal: only earlier frames are used). Frames whose left image cannot be read
 reuse the previous readable frame's crop (zeros before the first one) and are never trained on.
@@ -57,11 +57,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from contact_viz.atomic import atomic_write
-from contact_viz.hmm import select_f1_threshold
+from contact_viz.io.atomic import atomic_write
+from contact_viz.model.hmm import select_f1_threshold
 from contact_viz.params import from_dict as _params_from_dict
 from contact_viz.params import to_dict as _params_to_dict
-from contact_viz.tooltip import TipParams, crop_centered, tool_tip_xy
+from contact_viz.geometry.tooltip import TipParams, crop_centered, tool_tip_xy
 
 if TYPE_CHECKING:  # torch is imported lazily: importing this module stays cheap
     import torch
@@ -214,7 +214,7 @@ class SessionCrops:
 
 
 def _crop_cache_paths(session: Any, crop_px: int, tip_params: TipParams, cache_dir: Path) -> tuple[Path, Path]:
-    from contact_viz.cache import cache_path
+    from contact_viz.io.cache import cache_path
 
     key_params = {"crop_px": crop_px, "tip": _params_to_dict(tip_params)}
     crops_path = cache_path(session.root, "baseline-crops", key_params, ".npy", cache_dir)
@@ -228,12 +228,12 @@ def extract_crops(
     cache_dir: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> SessionCrops:
-    """The tool-tip crops of every frame of an opened ``session`` (``contact_viz.session.Session``).
+    """The tool-tip crops of every frame of an opened ``session`` (``contact_viz.io.session.Session``).
 
     Decodes the mask and left image of each frame once. Crop centres follow the module docstring
     (tip, else last known tip, else image centre). With ``cache_dir`` the crops are written to a
     ``.npy`` file there (keyed by the session's files, ``crop_px`` and ``tip_params``, see
-    ``contact_viz.cache``) and returned as a read-only memory map; a later call with unchanged
+    ``contact_viz.io.cache``) and returned as a read-only memory map; a later call with unchanged
     inputs reads it back without decoding anything. Without it they are held in memory
     (crop_px**2 * 3 bytes per frame: 164 kB at 234 px). ``progress(done, total)`` after each frame.
     """

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contact_viz.patch import REASON_EMPTY_MASK
+from contact_viz.geometry.patch import REASON_EMPTY_MASK
 
 __all__ = ["DIAGNOSTIC_CODES", "Diagnostic", "DiagnosticParams", "DiagnosticsTracker"]
 
@@ -72,7 +72,7 @@ class Diagnostic:
 class DiagnosticsTracker:
     """Runs the checks frame by frame and counts how often each fired.
 
-    ``update(frame_result)`` takes a :class:`contact_viz.extract.FrameResult` (or anything with
+    ``update(frame_result)`` takes a :class:`contact_viz.pipeline.extract.FrameResult` (or anything with
     ``frame`` and ``patch``; ``patch`` None = bad frame). ``counts`` maps every code to the number
     of frames it fired on; ``frames`` is the number of frames seen.
     """

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from .jsonfile import read_json, write_json
+from contact_viz.io.jsonfile import read_json, write_json
 
 CATEGORIES = ("same phantom and task", "new phantom", "new phantom and task")  # test session categories, paper order
 

@@ -7,7 +7,7 @@
   frame, (b) tool interior, tool edge, excluded ring and exterior band over the depth image,
   (c) a zoom on the selected patch with its N2 window and its distance.
 
-Layer class names and colours come from :mod:`contact_viz.style` (``LAYER_STYLES``,
+Layer class names and colours come from :mod:`contact_viz.viz.style` (``LAYER_STYLES``,
 ``PATCH_STYLES``), the same source the Rerun debugger's annotation context is built from, so the
 figure and the recording call and colour every class the same way. The depth image is drawn in
 grey, as in the debugger (``style.DEPTH_COLORMAP``), so the coloured layers stand out.
@@ -25,9 +25,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import style
-from .atomic import atomic_write
-from .patch import LAYER_BACKGROUND, LAYER_INTERIOR, PatchResult
+from contact_viz.viz import style
+from contact_viz.io.atomic import atomic_write
+from contact_viz.geometry.patch import LAYER_BACKGROUND, LAYER_INTERIOR, PatchResult
 
 __all__ = [
     "FigureStyle",
@@ -305,7 +305,7 @@ def _check_frame(left_rgb, tool_mask, depth_m, patch_result) -> tuple[np.ndarray
         if a.shape != shape:
             raise ValueError(f"{name}: expected shape {shape} (the left image's), got {a.shape}")
     if not isinstance(patch_result, PatchResult):
-        raise ValueError(f"patch_result: expected a contact_viz.patch.PatchResult, got {type(patch_result).__name__}")
+        raise ValueError(f"patch_result: expected a contact_viz.geometry.patch.PatchResult, got {type(patch_result).__name__}")
     if patch_result.layer_ids.shape != shape:
         raise ValueError(f"patch_result.layer_ids: expected shape {shape}, got {patch_result.layer_ids.shape}")
     return rgb, mask != 0, depth
@@ -447,7 +447,7 @@ def save_figure(fig, path_stem: str | Path, formats: Sequence[str] = SAVE_FORMAT
     """Write ``fig`` to ``<path_stem>.<format>`` for each format, each atomically.
 
     Each file is rendered into a temporary file beside its final name and renamed onto it only
-    when complete (``contact_viz.atomic.atomic_write``): a reader never sees a half-written figure.
+    when complete (``contact_viz.io.atomic.atomic_write``): a reader never sees a half-written figure.
     ``dpi`` (raster formats) defaults to ``FigureStyle().dpi``. Returns the written paths.
     """
     stem = Path(path_stem)

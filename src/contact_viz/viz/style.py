@@ -1,6 +1,6 @@
 """Names and colours of everything the viewer and the paper figures draw: the ONE source of both.
 
-Layer classes are the ``LAYER_*`` ids of :class:`contact_viz.patch.PatchResult.layer_ids`; the
+Layer classes are the ``LAYER_*`` ids of :class:`contact_viz.geometry.patch.PatchResult.layer_ids`; the
 Rerun ``AnnotationContext`` and the figure legends are both built from :data:`LAYER_STYLES`, so a
 class is called and coloured the same everywhere. Colours are the colour-blind-safe Okabe-Ito
 palette, as 8-bit RGBA tuples; :func:`to_float_rgba` converts one for matplotlib. The alpha of a
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from contact_viz.patch import LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE
+from contact_viz.geometry.patch import LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE
 
 __all__ = [
     "DEPTH_COLORMAP",
@@ -130,7 +130,7 @@ SERIES_STYLES: dict[str, SeriesStyle] = {
     "invalid_depth_fraction": SeriesStyle("invalid depth in band (fraction)", LIGHT_GREY, 1.5),
 }
 
-# One colour per diagnostic code (contact_viz.diagnostics), drawn as markers where the check fires.
+# One colour per diagnostic code (contact_viz.viz.diagnostics), drawn as markers where the check fires.
 DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
     "bad_frame": SeriesStyle("bad frame", WHITE, 6.0),
     "no_tool": SeriesStyle("no tool in mask", SKY_BLUE, 6.0),

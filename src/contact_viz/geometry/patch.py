@@ -32,7 +32,7 @@ Choices the paper leaves open, fixed here:
 Speed: every computation runs on the tool's bounding box padded by the band's reach (never the
 whole frame; :func:`patch_depth_rows` says which rows of the depth that is), with integral images
 gathered only at band pixels. Morphology and the distance transform are OpenCV's; the per-pixel
-passes are compiled (contact_viz._patch_kernels), each checked against the NumPy expression it
+passes are compiled (contact_viz.geometry._patch_kernels), each checked against the NumPy expression it
 replaces, and the whole against the literal formulas (tests).
 """
 
@@ -46,8 +46,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from . import _patch_kernels as _kernels
-from .params import PatchParams
+from contact_viz.geometry import _patch_kernels as _kernels
+from contact_viz.params import PatchParams
 
 # Class ids of the layer image (see PatchResult.layer_ids); shared with the viewer and figures.
 LAYER_BACKGROUND = 0

@@ -12,7 +12,7 @@ import json
 import os
 from pathlib import Path
 
-from . import __version__
+from contact_viz import __version__
 
 
 def default_cache_dir() -> Path:

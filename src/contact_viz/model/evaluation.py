@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .metrics import MACRO_ROW, macro_mean, session_metrics
+from contact_viz.model.metrics import MACRO_ROW, macro_mean, session_metrics
 
 PER_FRAME_COLUMNS = ("session", "frame", "signal", "posterior", "predicted", "label")
 

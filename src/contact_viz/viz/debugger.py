@@ -1,11 +1,11 @@
 """The visual debugger's run loop: stream a session through the pipeline into a Rerun recording.
 
 :func:`run_debugger` reads the frames one at a time through
-:func:`contact_viz.extract.iter_frame_results` (the same code path as ``contact-viz extract``, so
+:func:`contact_viz.pipeline.extract.iter_frame_results` (the same code path as ``contact-viz extract``, so
 every distance, signal and bad frame is the one the features file has), prepares what each
 frame shows (point cloud, patch geometry, decimated depth, causal HMM posterior, diagnostics) and
-hands it to :mod:`contact_viz.rerun_log`. Nothing is collected across frames: memory stays flat
-however long the session is. :func:`contact_viz.rerun_log.open_recording` makes the ``rr.RecordingStream`` with the
+hands it to :mod:`contact_viz.viz.rerun_log`. Nothing is collected across frames: memory stays flat
+however long the session is. :func:`contact_viz.viz.rerun_log.open_recording` makes the ``rr.RecordingStream`` with the
 chosen sinks (an .rrd file, a viewer to spawn or connect to, or a served web viewer).
 
 Images. The left and right images are read by a second background thread (not by the session
@@ -28,15 +28,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from contact_viz import rerun_log
-from contact_viz.diagnostics import DiagnosticParams, DiagnosticsTracker
+from contact_viz.viz import rerun_log
+from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.errors import SessionError
-from contact_viz.extract import iter_frame_results
-from contact_viz.hmm import StreamingFilter
+from contact_viz.pipeline.extract import iter_frame_results
+from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams
-from contact_viz.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
-from contact_viz.prefetch import prefetched
-from contact_viz.session import Session, read_rgb
+from contact_viz.geometry.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
+from contact_viz.io.prefetch import prefetched
+from contact_viz.io.session import Session, read_rgb
 
 __all__ = [
     "DebuggerOptions",
@@ -254,7 +254,7 @@ def run_debugger(
 ) -> RunSummary:
     """Log the frames of ``session`` selected by ``options`` to ``rec``, streaming, and summarise.
 
-    ``model`` (a :class:`contact_viz.model_file.ContactModel`, optional) adds the causal HMM
+    ``model`` (a :class:`contact_viz.model.model_file.ContactModel`, optional) adds the causal HMM
     posterior, computed frame by frame over the shown frames (equal to
     ``model.predict_proba`` on their signals), its threshold and the predicted contact; its patch
     parameters must equal ``options.patch_params`` (ValueError otherwise). Without a model the
@@ -263,7 +263,7 @@ def run_debugger(
     """
     indices = select_frames(len(session), options.start, options.end, options.stride)
     if model is not None:
-        from contact_viz.model_file import check_params
+        from contact_viz.model.model_file import check_params
 
         check_params(model, options.patch_params, "contact-viz view")
     started = time.perf_counter()

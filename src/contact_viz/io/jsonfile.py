@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from .atomic import atomic_write
+from contact_viz.io.atomic import atomic_write
 
 
 def read_json(path: str | Path, expected: str, missing: str | None = None) -> Any:

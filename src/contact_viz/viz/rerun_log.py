@@ -1,7 +1,7 @@
 """The ONE module that calls Rerun: entity paths, the default blueprint, and what is logged per frame.
 
 Everything here receives an explicit ``rr.RecordingStream`` and objects the pipeline already
-computed (the session, :class:`~contact_viz.extract.FrameResult`, a :class:`FrameView` of
+computed (the session, :class:`~contact_viz.pipeline.extract.FrameResult`, a :class:`FrameView` of
 display-ready arrays, diagnostics); it computes no geometry and no posterior itself.
 
 Entity tree (the README lists it too)::
@@ -51,10 +51,10 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun import RecordingStream
 
-from contact_viz.diagnostics import DIAGNOSTIC_CODES, Diagnostic
-from contact_viz.pointcloud import Cloud, PatchGeometry
-from contact_viz.session import BadFrame, Session
-from contact_viz.style import (
+from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, Diagnostic
+from contact_viz.geometry.pointcloud import Cloud, PatchGeometry
+from contact_viz.io.session import BadFrame, Session
+from contact_viz.viz.style import (
     DEPTH_COLORMAP,
     DIAGNOSTIC_STYLES,
     LAYER_OVERLAY_OPACITY,
@@ -197,7 +197,7 @@ def _diagnostic_level(code: str) -> float:
 
 @dataclass(frozen=True)
 class FrameView:
-    """Display-ready data of one readable frame, prepared by the debugger (see contact_viz.debugger)."""
+    """Display-ready data of one readable frame, prepared by the debugger (see contact_viz.viz.debugger)."""
 
     left_jpeg: bytes | None  # left image as JPEG bytes, or None
     left_rgb: np.ndarray | None  # left image as (H, W, 3) uint8 RGB (raw mode), or None

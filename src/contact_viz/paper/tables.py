@@ -1,6 +1,6 @@
 """Table 1 of a study as files: markdown, LaTeX and CSV, each written atomically.
 
-The metrics themselves are computed in :mod:`contact_viz.metrics` (pure); this module only
+The metrics themselves are computed in :mod:`contact_viz.model.metrics` (pure); this module only
 writes them out.
 """
 
@@ -10,8 +10,8 @@ import csv
 from collections.abc import Sequence
 from pathlib import Path
 
-from .atomic import atomic_write
-from .metrics import METRIC_KEYS, format_table
+from contact_viz.io.atomic import atomic_write
+from contact_viz.model.metrics import METRIC_KEYS, format_table
 
 
 def _num(value) -> str:

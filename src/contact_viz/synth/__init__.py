@@ -33,8 +33,8 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from contact_viz.atomic import atomic_write
-from contact_viz.jsonfile import write_json
+from contact_viz.io.atomic import atomic_write
+from contact_viz.io.jsonfile import write_json
 from contact_viz.params import to_dict
 
 PHANTOMS: tuple[str, ...] = ("cup", "kidney", "liver", "glove")

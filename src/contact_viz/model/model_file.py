@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
-from .jsonfile import read_json, write_json
-from .hmm import LosoEnsemble
-from .params import LabelParams, PatchParams, from_dict, to_dict
+from contact_viz import __version__
+from contact_viz.io.jsonfile import read_json, write_json
+from contact_viz.model.hmm import LosoEnsemble
+from contact_viz.params import LabelParams, PatchParams, from_dict, to_dict
 
 MODEL_FORMAT = "contact-viz-model/1"  # the "format" field of model.json
 

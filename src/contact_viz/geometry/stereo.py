@@ -1,0 +1,228 @@
+"""Depth from a rectified stereo pair with OpenCV semi-global matching (SGBM): pure functions over arrays.
+
+This is the fallback for sessions that come without depth: a learned stereo network such as
+FoundationStereo gives far better depth on endoscopic images (weak texture, specular highlights,
+thin tools); feed its output in as ``depth/<stem>.npy`` (float32 m) or ``disparity/<stem>.npy``
+(float32 px) and this module is never used.
+
+The matcher (:func:`sgbm_disparity`) runs ``cv2.StereoSGBM`` with the left images padded on the
+left (so pixels near the left edge can still be matched), OpenCV's speckle filter and
+uniqueness test, then a left-right consistency check of our own (OpenCV's contrib
+``ximgproc`` is not used): the right-view disparity is computed by matching the horizontally
+flipped pair, and a left pixel is kept only where the right view maps it back within
+``lr_max_diff_px``.
+
+Disparities are cached per frame outside the session directory (``contact_viz.io.depth_cache``), as
+16-bit PNGs of the fixed-point (1/16 px) disparity, keyed by the session's path, the sizes and
+modification times of the calibration and image files they depend on, and the resolved
+parameters, so the second run is fast and a changed input never reuses a stale entry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+
+__all__ = [
+    "DEPTH_METHODS",
+    "SGBMParams",
+    "disparity_to_depth",
+    "sgbm_disparity",
+]
+
+DEPTH_METHODS = ("sgbm",)  # methods `contact-viz depth` can compute
+SUBPIXEL = 16  # StereoSGBM returns disparities in 1/16 px fixed point
+_MODES = {
+    "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
+    "sgbm_3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    "hh": cv2.STEREO_SGBM_MODE_HH,
+    "hh4": cv2.STEREO_SGBM_MODE_HH4,
+}
+_MAX_CODE = np.iinfo(np.uint16).max  # largest value a 16-bit PNG holds
+_MIN_BLOCK = 3  # smallest matching block side, px
+_BLOCK_STEP = 2  # block sides are odd
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SGBMParams:
+    """Semi-global matching settings; ``None`` fields are sized from the image width by :meth:`resolve`."""
+
+    num_disparities: int | None = None  # disparity search range, px (multiple of 16); None = from the width
+    disparity_range_fraction: float = 0.125  # when num_disparities is None: range = this * width (rounded up to 16)
+    min_disparity: int = 0  # smallest disparity searched, px
+    block_size: int | None = None  # matching block side, px (odd, >= 3); None = from the width
+    width_per_block_px: float = 320.0  # when block_size is None: block = width / this, as an odd number >= 3
+    p1_factor: int = 8  # P1 = p1_factor * channels * block^2: penalty for a 1 px disparity change
+    p2_factor: int = 32  # P2 = p2_factor * channels * block^2: penalty for larger disparity jumps
+    uniqueness_ratio: int = 10  # best cost must beat the second best by this margin, %
+    speckle_window_size: int = 100  # largest connected speckle region removed, px (0 = no speckle filter)
+    speckle_range: int = 2  # largest disparity step inside one connected region, px
+    disp12_max_diff: int = 1  # OpenCV's built-in left-right tolerance, px (-1 = off)
+    lr_check: bool = True  # run the right-view match and drop pixels failing the left-right check
+    lr_max_diff_px: float = 1.0  # left-right consistency tolerance, px
+    mode: str = "sgbm_3way"  # OpenCV mode: sgbm, sgbm_3way (fast), hh (full 8-path, slow), hh4
+    downscale: int = 1  # match at 1/downscale resolution, then upsample the disparity (faster, coarser)
+
+    def __post_init__(self) -> None:
+        if self.mode not in _MODES:
+            raise ValueError(f"SGBMParams.mode must be one of {sorted(_MODES)}, got {self.mode!r}")
+        if self.num_disparities is not None and (
+            self.num_disparities < SUBPIXEL or self.num_disparities % SUBPIXEL
+            or self.num_disparities * SUBPIXEL >= _MAX_CODE
+        ):
+            raise ValueError(
+                f"SGBMParams.num_disparities must be a positive multiple of 16 below 4096, got {self.num_disparities}"
+            )
+        if self.block_size is not None and (self.block_size < 1 or self.block_size % 2 == 0):
+            raise ValueError(f"SGBMParams.block_size must be an odd number >= 1, got {self.block_size}")
+        if not 0 < self.disparity_range_fraction <= 1:
+            raise ValueError(
+                f"SGBMParams.disparity_range_fraction must be in (0, 1], got {self.disparity_range_fraction}"
+            )
+        if not self.width_per_block_px > 0:
+            raise ValueError(f"SGBMParams.width_per_block_px must be positive, got {self.width_per_block_px}")
+        if not self.lr_max_diff_px >= 0:
+            raise ValueError(f"SGBMParams.lr_max_diff_px must be >= 0, got {self.lr_max_diff_px}")
+        if isinstance(self.downscale, bool) or not isinstance(self.downscale, int) or self.downscale < 1:
+            raise ValueError(f"SGBMParams.downscale must be a positive integer, got {self.downscale!r}")
+        if self.p1_factor <= 0 or self.p2_factor <= self.p1_factor:
+            raise ValueError(
+                f"SGBMParams needs 0 < p1_factor < p2_factor, got {self.p1_factor} and {self.p2_factor}"
+            )
+
+    def resolve(self, width_px: int) -> SGBMParams:
+        """These parameters with num_disparities and block_size fixed for images ``width_px`` wide.
+
+        The sizes refer to the matching resolution (width / downscale).
+        """
+        width = max(1, int(width_px) // self.downscale)
+        num = self.num_disparities
+        if num is None:
+            num = max(SUBPIXEL, -(-int(np.ceil(width * self.disparity_range_fraction)) // SUBPIXEL) * SUBPIXEL)
+        block = self.block_size
+        if block is None:
+            block = max(_MIN_BLOCK, int(round(width / self.width_per_block_px)))
+            block += 1 - block % _BLOCK_STEP  # next odd number
+        if (num + max(self.min_disparity, 0)) * self.downscale * SUBPIXEL >= _MAX_CODE:
+            raise ValueError(
+                f"SGBMParams: search range {num} px x downscale {self.downscale} is too large "
+                "(disparities must stay below 4096 px)"
+            )
+        return replace(self, num_disparities=num, block_size=block)
+
+
+# --------------------------------------------------------------------------------------------
+# Pure functions
+# --------------------------------------------------------------------------------------------
+
+
+def _as_pair(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    left, right = np.asarray(left), np.asarray(right)
+    if left.shape != right.shape:
+        raise ValueError(f"left and right images must have the same shape, got {left.shape} and {right.shape}")
+    if left.dtype != np.uint8 or right.dtype != np.uint8:
+        raise ValueError(f"expected uint8 images, got {left.dtype} and {right.dtype}")
+    if left.ndim not in (2, 3) or (left.ndim == 3 and left.shape[2] != 3) or min(left.shape[:2]) < 1:
+        raise ValueError(f"expected (H, W) grey or (H, W, 3) RGB images, got shape {left.shape}")
+    return np.ascontiguousarray(left), np.ascontiguousarray(right)
+
+
+def _match(left: np.ndarray, right: np.ndarray, p: SGBMParams) -> np.ndarray:
+    """StereoSGBM disparity of ``left`` against ``right`` (H, W) float32 px, NaN = no match.
+
+    The pair is padded on the left by the search range (edge pixels repeated) so that pixels
+    near the left border can match; the padding is cropped off the result.
+    """
+    channels = 1 if left.ndim == 2 else left.shape[2]
+    area = channels * p.block_size * p.block_size
+    matcher = cv2.StereoSGBM_create(
+        minDisparity=p.min_disparity,
+        numDisparities=p.num_disparities,
+        blockSize=p.block_size,
+        P1=p.p1_factor * area,
+        P2=p.p2_factor * area,
+        disp12MaxDiff=p.disp12_max_diff,
+        uniquenessRatio=p.uniqueness_ratio,
+        speckleWindowSize=p.speckle_window_size,
+        speckleRange=p.speckle_range,
+        mode=_MODES[p.mode],
+    )
+    pad = p.num_disparities + max(p.min_disparity, 0)
+    left_p = cv2.copyMakeBorder(left, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+    right_p = cv2.copyMakeBorder(right, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+    fixed = matcher.compute(left_p, right_p)[:, pad:]
+    disparity = fixed.astype(np.float32) / np.float32(SUBPIXEL)
+    disparity[fixed < p.min_disparity * SUBPIXEL] = np.nan  # OpenCV marks no-match as (min - 1) * 16
+    return disparity
+
+
+def left_right_check(disp_left: np.ndarray, disp_right: np.ndarray, max_diff_px: float) -> np.ndarray:
+    """Where the left disparity is confirmed by the right view: (H, W) bool.
+
+    ``disp_left[y, x] = d`` says left pixel x matches right pixel x - d; it passes when that right
+    pixel (rounded) exists and ``|disp_right[y, round(x - d)] - d| <= max_diff_px``.
+    Both inputs (H, W) float32 px with NaN = no match.
+    """
+    height, width = disp_left.shape
+    finite = np.isfinite(disp_left)
+    x_right = np.arange(width, dtype=np.float32)[None, :] - np.where(finite, disp_left, np.float32(width))
+    col = np.rint(x_right).astype(np.int64)
+    inside = finite & (col >= 0) & (col < width)
+    rows = np.broadcast_to(np.arange(height)[:, None], disp_left.shape)
+    back = np.full(disp_left.shape, np.nan, dtype=np.float32)
+    back[inside] = disp_right[rows[inside], col[inside]]
+    with np.errstate(invalid="ignore"):
+        return inside & (np.abs(back - disp_left) <= max_diff_px)
+
+
+def sgbm_disparity(left_rgb: np.ndarray, right_rgb: np.ndarray, params: SGBMParams = SGBMParams()) -> np.ndarray:
+    """Disparity of a rectified pair by semi-global matching.
+
+    ``left_rgb``, ``right_rgb``: (H, W, 3) or (H, W) uint8, rectified (corresponding pixels on the
+    same row, right pixel = left pixel - disparity). Returns (H, W) float32 disparity in px
+    (multiples of 1/16 px, times ``downscale``), NaN where no reliable match was found.
+    """
+    left, right = _as_pair(left_rgb, right_rgb)
+    height, width = left.shape[:2]
+    p = params.resolve(width)
+    n = p.downscale
+    if n > 1:
+        size = (max(1, width // n), max(1, height // n))
+        left = cv2.resize(left, size, interpolation=cv2.INTER_AREA)
+        right = cv2.resize(right, size, interpolation=cv2.INTER_AREA)
+    disparity = _match(left, right, p)
+    if p.lr_check:
+        flipped = _match(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]), p)
+        disparity[~left_right_check(disparity, flipped[:, ::-1], p.lr_max_diff_px)] = np.nan
+    if n > 1:
+        disparity = cv2.resize(disparity, (width, height), interpolation=cv2.INTER_NEAREST) * np.float32(n)
+    return disparity
+
+
+def disparity_to_depth(
+    disparity_px: np.ndarray, fx_px: float, baseline_m: float, offset_px: float = 0.0
+) -> np.ndarray:
+    """Depth of a rectified pair's disparity: ``fx * baseline / (disparity + offset)``.
+
+    ``disparity_px`` (H, W) float px; ``offset_px`` = cx_right - cx_left of the rectified cameras
+    (0 for FoundationStereo's K.txt). Returns (H, W) float32 metres, NaN where the disparity is
+    not finite or not positive, or disparity + offset is not positive.
+    """
+    if not (np.isfinite(fx_px) and fx_px > 0 and np.isfinite(baseline_m) and baseline_m > 0):
+        raise ValueError(f"fx_px and baseline_m must be positive, got {fx_px!r} and {baseline_m!r}")
+    disparity = np.asarray(disparity_px, dtype=np.float32)
+    shifted = disparity + np.float32(offset_px)
+    valid = np.isfinite(disparity) & (disparity > 0) & (shifted > 0)
+    depth = np.full(disparity.shape, np.nan, dtype=np.float32)
+    np.divide(np.float32(fx_px * baseline_m), shifted, out=depth, where=valid)
+    return depth
+
+

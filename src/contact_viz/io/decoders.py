@@ -1,0 +1,204 @@
+"""Decoders of one frame's files: tool masks, depth (.npy / uint16 PNG), disparity, RGB images.
+
+Each raises one :class:`SessionError` naming the file and what was expected.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from contact_viz.errors import SessionError
+from contact_viz.io.npy_rows import read_npy_rows
+from contact_viz.io.palette_png import is_palette_png, palette_indices
+
+
+MM_PER_M = 1000.0  # millimetres per metre (uint16 depth PNGs hold millimetres)
+# Exceptions that mean "this file could not be decoded" (PIL raises SyntaxError for some broken PNGs).
+DECODE_ERRORS = (OSError, ValueError, EOFError, SyntaxError, zlib.error, cv2.error)
+
+# --------------------------------------------------------------------------------------------
+
+
+def _read_bytes(path: Path, what: str) -> np.ndarray:
+    """The file's bytes as (k,) uint8; a missing, unreadable or empty file is a SessionError."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise SessionError(path, f"expected {what}, could not read the file ({exc.strerror or exc})") from exc
+    if data.size == 0:
+        raise SessionError(path, f"expected {what}, found an empty file")
+    return data
+
+
+def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
+    """Decode a tool mask PNG to (H, W) bool, True = tool.
+
+    Palettized (SAM2/DAVIS) and single-channel masks: pixel value = object id, 0 = background;
+    tool = nonzero, or == ``object_id`` when given. Multi-channel masks: tool = any colour channel
+    nonzero (``object_id`` is then an error). Palettized PNGs are decoded to their palette
+    indices (contact_viz.io.palette_png; PIL for bit depths other than 8), the rest by OpenCV.
+    """
+    what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
+    data = _read_bytes(path, what)
+    try:
+        raw = data.tobytes()
+        if is_palette_png(raw):
+            ids = palette_indices(raw)
+            if ids is None:
+                with Image.open(io.BytesIO(raw)) as image:
+                    ids = np.asarray(image)
+        else:
+            ids = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+    if ids is None:
+        raise SessionError(path, f"expected {what}, could not decode it")
+    if ids.ndim == 2:
+        return ids == object_id if object_id is not None else ids != 0
+    if ids.ndim == 3 and ids.shape[2] in (3, 4):
+        if object_id is not None:
+            raise SessionError(
+                path,
+                f"expected a palettized or single-channel mask to select object_id={object_id}, "
+                f"found {ids.shape[2]} channels",
+            )
+        return np.any(ids[:, :, :3] != 0, axis=2)
+    raise SessionError(path, f"expected {what}, found an array of shape {ids.shape}")
+
+
+def _invalid_to_nan(depth_m: np.ndarray) -> np.ndarray:
+    """In place: NaN wherever depth is not a finite positive number. Returns ``depth_m``."""
+    valid = depth_m > 0
+    valid &= depth_m < np.inf
+    np.copyto(depth_m, np.float32(np.nan), where=~valid)
+    return depth_m
+
+
+@contextlib.contextmanager
+def _loading(path: Path, what: str) -> Iterator[None]:
+    """Turn a failure to open or parse ``path`` inside the block into one SessionError naming it."""
+    try:
+        yield
+    except SessionError:
+        raise  # already names the file
+    except FileNotFoundError as exc:
+        raise SessionError(path, f"expected {what}, file missing") from exc
+    except DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
+
+
+def _check_float_2d(path: Path, what: str, dtype: object, shape: object) -> None:
+    """SessionError unless ``dtype``/``shape`` describe a 2-D float32 or float64 array."""
+    is_float = isinstance(dtype, np.dtype) and dtype.kind == "f" and dtype.itemsize in (4, 8)
+    if not is_float or not isinstance(shape, tuple) or len(shape) != 2:
+        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+
+
+def _check_image_shape(path: Path, shape: tuple[int, ...], image_size: tuple[int, int], what: str) -> None:
+    """SessionError unless ``shape`` (an array's, channels ignored) is ``image_size`` (H, W),
+    the left images' size."""
+    if tuple(shape[:2]) != tuple(image_size):
+        raise SessionError(
+            path,
+            f"expected a {what} of {image_size[0]}x{image_size[1]} px (height x width, as the left images), "
+            f"found {shape[0]}x{shape[1]}",
+        )
+
+
+def _load_float_npy(path: Path, what: str) -> np.ndarray:
+    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``."""
+    with _loading(path, what):
+        raw = np.load(path, allow_pickle=False)
+    _check_float_2d(path, what, getattr(raw, "dtype", type(raw).__name__), getattr(raw, "shape", None))
+    return np.ascontiguousarray(raw, dtype=np.float32)
+
+
+def read_depth_m(path: Path) -> np.ndarray:
+    """Read a depth file as (H, W) float32 metres, read-only, values as stored.
+
+    ``.npy``: 2-D float32/float64 metres (FoundationStereo depth_meter.npy).
+    ``.png``: 16-bit single-channel millimetres.
+    Invalid depth (0, NaN, inf or negative in the file) is left as it is: every consumer treats a
+    value as valid only when it is a finite number > 0, so no pass over the frame is spent on it.
+    """
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        depth = _load_float_npy(path, "a 2-D float32 depth array in metres (.npy)")
+        depth.flags.writeable = False
+        return depth
+    if suffix == ".png":
+        what = "a 16-bit single-channel depth PNG in millimetres"
+        data = _read_bytes(path, what)
+        try:
+            raw = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        except DECODE_ERRORS as exc:
+            raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+        if raw is None:
+            raise SessionError(path, f"expected {what}, could not decode it")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            channels = 1 if raw.ndim == 2 else raw.shape[2]
+            raise SessionError(
+                path, f"expected {what}, found {raw.dtype.itemsize * 8}-bit {channels}-channel ({raw.dtype})"
+            )
+        depth = raw.astype(np.float32)
+        depth /= np.float32(MM_PER_M)
+        depth.flags.writeable = False
+        return depth
+    raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
+
+
+def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, int]) -> np.ndarray:
+    """Rows ``row0`` to ``row1 - 1`` of a depth .npy of ``image_size`` (H, W), as a writable
+    (row1 - row0, W) float32 array in metres, values as stored; only those rows are read.
+    SessionError naming the file for a missing, malformed or truncated file, a dtype other than
+    float32/float64, or another shape (checked from the header, before any row is read)."""
+    what = "a 2-D float32 depth array in metres (.npy)"
+
+    def check(dtype: np.dtype, shape: tuple[int, ...]) -> None:
+        _check_float_2d(path, what, dtype, shape)
+        _check_image_shape(path, shape, image_size, "depth map")
+
+    with _loading(path, what):
+        rows, _ = read_npy_rows(path, row0, row1, check=check)
+    return np.ascontiguousarray(rows, dtype=np.float32)
+
+
+def read_disparity_px(path: Path) -> np.ndarray:
+    """Decode a disparity .npy (FoundationStereo's raw output) to (H, W) float32 px.
+
+    NaN where the disparity is not a finite positive number.
+    """
+    return _invalid_to_nan(_load_float_npy(path, "a 2-D float32 disparity array in pixels (.npy)"))
+
+
+_IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.10 decodes straight to RGB
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """Decode a colour image to (H, W, 3) uint8 RGB (grey images are expanded, alpha dropped)."""
+    what = "a colour image (PNG or JPEG)"
+    data = _read_bytes(path, what)
+    try:
+        if _IMREAD_RGB is not None:
+            rgb = cv2.imdecode(data, _IMREAD_RGB)
+        else:
+            bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+            rgb = None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    except DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+    if rgb is None or rgb.size == 0:
+        raise SessionError(path, f"expected {what}, could not decode it")
+    if rgb.dtype != np.uint8:  # 16-bit colour PNGs: keep the high byte
+        rgb = (rgb >> 8).astype(np.uint8)
+    return rgb
+
+
+# --------------------------------------------------------------------------------------------

@@ -1,0 +1,144 @@
+"""Per-frame SGBM disparities of a session, cached outside the session directory.
+
+Stored as 16-bit PNGs of the fixed-point (1/16 px) disparity, keyed by the session's path, the sizes
+and modification times of the calibration and image files they depend on, and the resolved
+parameters, so the second run is fast and a changed input never reuses a stale entry.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from contact_viz import __version__
+from contact_viz.io.atomic import atomic_write
+
+from contact_viz.geometry.stereo import SUBPIXEL, SGBMParams, sgbm_disparity
+
+
+class CacheWarning(UserWarning):
+    """The depth cache could not be written; depth is recomputed on every read."""
+
+
+# --------------------------------------------------------------------------------------------
+# Cache
+# --------------------------------------------------------------------------------------------
+
+
+def _stat_key(path: Path) -> list:
+    stat = path.stat()
+    return [path.name, stat.st_size, stat.st_mtime_ns]
+
+
+def _encode(disparity: np.ndarray, p: SGBMParams) -> np.ndarray:
+    """Disparity px -> uint16 code: 0 = invalid, else (d - min) * 16 + 1 (exact for 1/16 px steps)."""
+    code = np.zeros(disparity.shape, dtype=np.uint16)
+    valid = np.isfinite(disparity)
+    code[valid] = np.rint((disparity[valid] - p.min_disparity * p.downscale) * SUBPIXEL).astype(np.uint32) + 1
+    return code
+
+
+def _decode(code: np.ndarray, p: SGBMParams) -> np.ndarray:
+    disparity = (code.astype(np.float32) - 1) / np.float32(SUBPIXEL) + np.float32(p.min_disparity * p.downscale)
+    disparity[code == 0] = np.nan
+    return disparity
+
+
+class DisparityCache:
+    """Per-frame SGBM disparities of one session, stored outside the session directory.
+
+    Entries live in ``<cache_dir>/sgbm/<session name>-<key>/`` where the key hashes the package
+    version, the session's absolute path, the name, size and mtime of each calibration file and
+    the resolved parameters; each frame's file name adds a hash of its left and right images'
+    size and mtime. Writes are atomic, so concurrent readers never see half a file.
+    ``directory=None`` disables storage (every read recomputes).
+    """
+
+    def __init__(self, directory: Path | None, params: SGBMParams) -> None:
+        self.directory = directory
+        self.params = params
+        self._warned = False
+
+    @classmethod
+    def for_session(
+        cls,
+        root: Path,
+        calibration_files: Sequence[Path],
+        params: SGBMParams,
+        cache_dir: str | Path | None = None,
+    ) -> DisparityCache:
+        """The cache of session ``root`` for resolved ``params`` (``cache_dir`` default: the package cache)."""
+        from contact_viz.io.cache import default_cache_dir
+
+        root = Path(root).resolve()
+        base = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+        base = base.resolve()
+        if base == root or root in base.parents:
+            raise ValueError(f"cache_dir {base} is inside the session directory {root}; choose a folder outside it")
+        payload = json.dumps(
+            {"version": __version__, "root": str(root), "params": asdict(params),
+             "calibration": [_stat_key(Path(f)) for f in calibration_files]},
+            sort_keys=True,
+        )
+        key = hashlib.sha256(payload.encode()).hexdigest()[:24]
+        return cls(base / "sgbm" / f"{root.name}-{key}", params)
+
+    def path(self, stem: str, left_path: Path, right_path: Path) -> Path | None:
+        """Where frame ``stem``'s disparity lives (None when caching is off)."""
+        if self.directory is None:
+            return None
+        frame_key = json.dumps([_stat_key(left_path), _stat_key(right_path)])
+        digest = hashlib.sha256(frame_key.encode()).hexdigest()[:12]
+        return self.directory / f"{stem}-{digest}.png"
+
+    def load(self, path: Path | None) -> np.ndarray | None:
+        """The cached disparity (H, W) float32 px (NaN invalid), or None if absent or unreadable."""
+        if path is None or not path.is_file():
+            return None
+        code = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if code is None or code.dtype != np.uint16 or code.ndim != 2:
+            return None
+        return _decode(code, self.params)
+
+    def save(self, path: Path | None, disparity: np.ndarray) -> None:
+        """Store a disparity atomically; a failure only warns (once) and disables nothing else."""
+        if path is None:
+            return
+        ok, data = cv2.imencode(".png", _encode(disparity, self.params), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        try:
+            if not ok:
+                raise OSError("PNG encoding failed")
+            with atomic_write(path, "wb") as handle:
+                handle.write(data.tobytes())
+        except OSError as exc:
+            if not self._warned:
+                self._warned = True
+                warnings.warn(f"{path.parent}: could not write the depth cache ({exc}); depth is recomputed "
+                              "on every read", CacheWarning, stacklevel=2)
+
+    def disparity(
+        self, stem: str, left_path: Path, right_path: Path, load_pair: Callable[[], tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[np.ndarray, bool]:
+        """Frame ``stem``'s disparity from the cache, else computed from ``load_pair()`` and stored.
+
+        Returns (disparity (H, W) float32 px, whether it came from the cache).
+        """
+        path = self.path(stem, left_path, right_path)
+        cached = self.load(path)
+        if cached is not None:
+            return cached, True
+        left, right = load_pair()
+        disparity = sgbm_disparity(left, right, self.params)
+        self.save(path, disparity)
+        return disparity, False
+
+
+# --------------------------------------------------------------------------------------------
+# Whole-session precomputation (`contact-viz depth`)

@@ -1,0 +1,518 @@
+"""Read a recorded session directory: calibration, frame order, force, labels and per-frame layers.
+
+The session directory format (the contract)::
+
+    SESSION/
+      session.json        optional: {"name", "phantom", "task", "fps"} (fps default 30)
+      K.txt               line 1 = 9 numbers, row-major 3x3 K (px); line 2 = stereo baseline (m)
+                          (or ROS left.yaml + right.yaml, or an OpenCV stereo.yaml: see calibration.py)
+      left/<stem>.png|jpg|jpeg    left frames (the frame list); rectified, unless the calibration
+                                  says otherwise (then left/right/masks/depth are rectified on load)
+      right/<stem>.png|jpg|jpeg   right frames (optional; needed for SGBM depth)
+      masks/<stem>.png    tool mask: palettized (index = object id) or 8-bit 0/255 (or RGB, nonzero = tool)
+      depth/<stem>.npy    float32 metres, or depth/<stem>.png uint16 millimetres; 0, NaN, inf = invalid
+      disparity/<stem>.npy  float32 px (FoundationStereo's raw output), used when depth/ is absent
+      force.csv           optional: `frame` (stem) or `timestamp` (s) column, plus fx, fy, fz (N)
+      frames.csv          optional: frame,timestamp (s); needed when force.csv is indexed by timestamp
+      labels.csv          optional manual labels: frame,contact (0/1); they replace the force labels
+
+Depth comes from one source per session, chosen in this order and logged (``Session.depth_note``):
+``depth/``; else ``disparity/`` (depth = fx * baseline / (disparity + offset)); else OpenCV
+semi-global matching of the left/right pair (``stereo.py``), computed lazily per frame and cached
+outside the session directory.
+
+``open_session`` validates everything that is session-wide up front and raises one
+:class:`SessionError` naming the file and what was expected. Per-frame problems never raise:
+``Session.iter_frames`` yields a :class:`BadFrame` for them and carries on. Nothing here ever
+writes into the session directory (the SGBM cache lives in the cache folder).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from contact_viz.io.calibration import Calibration, Rectification, StereoCalibration, read_calibration
+from contact_viz.errors import SessionError, SessionWarning
+from contact_viz.io.prefetch import prefetched
+from contact_viz.params import LabelParams
+from contact_viz.io.decoders import (
+    DECODE_ERRORS,
+    _check_image_shape,
+    read_depth_m,
+    read_depth_rows_m,
+    read_disparity_px,
+    read_rgb,
+    read_tool_mask,
+)
+from contact_viz.io.session_files import (
+    _find_masks,
+    _list_stems,
+    _read_force_csv,
+    _read_frames_csv,
+    _read_labels_csv,
+    _read_session_json,
+    find_depth_source,
+    force_labels,
+    missing_inputs,
+    natural_key,
+)
+from contact_viz.geometry.stereo import DEPTH_METHODS, SGBMParams, disparity_to_depth
+from contact_viz.io.depth_cache import DisparityCache
+
+__all__ = [
+    "LAYERS",
+    "BadFrame",
+    "Calibration",
+    "DEPTH_SOURCES",
+    "Frame",
+    "Session",
+    "SessionWarning",
+    "missing_inputs",
+    "natural_key",
+    "open_session",
+    "read_depth_m",
+    "read_disparity_px",
+    "read_rgb",
+    "read_tool_mask",
+]
+
+log = logging.getLogger(__name__)
+
+LAYERS = frozenset({"mask", "depth", "left", "right"})  # names of the per-frame layers iter_frames can decode
+DEFAULT_FPS = 30.0  # frame rate used when session.json gives none, frames/s
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # accepted left/right image file types, in lookup preference
+DEPTH_SOURCES = ("depth", "disparity", "sgbm")  # where a session's depth can come from, in preference order
+
+
+
+# --------------------------------------------------------------------------------------------
+# Data types
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One decoded frame. Layers that were not requested are None."""
+
+    index: int  # position in the session's frame order, 0-based
+    stem: str  # file stem shared by left/, right/, masks/, depth/
+    timestamp_s: float  # frame time, s
+    tool_mask: np.ndarray | None  # (H, W) bool, True = tool
+    depth_m: np.ndarray | None  # (H, W) float32, m, read-only; invalid where not a finite number > 0
+    left_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB
+    right_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB; None also when the frame has no right image
+
+
+@dataclass(frozen=True)
+class BadFrame:
+    """A frame whose requested layers could not be read; ``error`` names the file and the expectation."""
+
+    index: int  # position in the session's frame order, 0-based
+    stem: str  # file stem
+    timestamp_s: float  # frame time, s
+    error: SessionError  # what went wrong, naming the file
+
+    @property
+    def reason(self) -> str:
+        """The error message: "<path>: <what was expected>"."""
+        return str(self.error)
+
+
+# Session
+# --------------------------------------------------------------------------------------------
+
+
+class Session:
+    """An opened session: metadata, calibration, per-frame times/force/labels, lazy frame decoding.
+
+    Attributes (arrays are read-only, n = number of frames):
+        root: session directory (absolute). name / phantom / task: from session.json.
+        fps: frames/s. calibration: rectified left K (px) and baseline (m).
+        stereo: the calibration file(s) read and, when the images are raw, the rectification.
+        rectification: maps applied on load to left/right/masks/depth (None if already rectified).
+        stems: frame stems in numeric order. image_size: (height, width) px of the left images.
+        timestamps_s: (n,) float64, s. force_xyz_n: (n, 3) float64, N (NaN = no sample).
+        force_n: (n,) float64 magnitude, N (NaN = unknown). labels: (n,) int8 1/0/-1 (unknown).
+        label_source: (n,) str "manual" / "force" / "none". has_right: right/ holds images.
+        depth_source: "depth", "disparity" or "sgbm" (see DEPTH_SOURCES). depth_note: one line
+        saying where depth comes from. depth_config: what the depth depends on, for cache keys.
+        depth_cache_dir: where SGBM disparities are cached (None for other sources).
+    """
+
+    def __init__(
+        self,
+        *,
+        root: Path,
+        name: str,
+        phantom: str | None,
+        task: str | None,
+        fps: float,
+        calibration: Calibration,
+        stems: list[str],
+        image_size: tuple[int, int],
+        timestamps_s: np.ndarray,
+        force_xyz_n: np.ndarray,
+        force_n: np.ndarray,
+        labels: np.ndarray,
+        label_source: np.ndarray,
+        left_files: dict[str, Path],
+        right_files: dict[str, Path],
+        mask_files: dict[str, Path],
+        depth_files: dict[str, Path],
+        object_id: int | None,
+        depth_source: str = "depth",
+        depth_note: str = "depth from depth/",
+        stereo: StereoCalibration | None = None,
+        sgbm_cache: DisparityCache | None = None,
+    ) -> None:
+        if depth_source not in DEPTH_SOURCES:
+            raise ValueError(f"depth_source must be one of {DEPTH_SOURCES}, got {depth_source!r}")
+        if depth_source == "sgbm" and sgbm_cache is None:
+            raise ValueError("depth_source 'sgbm' needs an sgbm_cache")
+        self.root = root
+        self.name = name
+        self.phantom = phantom
+        self.task = task
+        self.fps = fps
+        self.calibration = calibration
+        self.stereo = stereo
+        self.rectification: Rectification | None = stereo.rectification if stereo is not None else None
+        self.stems = stems
+        self.image_size = image_size
+        self.timestamps_s = _read_only(timestamps_s)
+        self.force_xyz_n = _read_only(force_xyz_n)
+        self.force_n = _read_only(force_n)
+        self.labels = _read_only(labels)
+        self.label_source = _read_only(label_source)
+        self.has_right = bool(right_files)
+        self.object_id = object_id
+        self.depth_source = depth_source
+        self.depth_note = depth_note
+        self._left_files = left_files
+        self._right_files = right_files
+        self._mask_files = mask_files
+        self._depth_files = depth_files  # stem -> depth/ or disparity/ file, by depth_source
+        self._sgbm = sgbm_cache if depth_source == "sgbm" else None
+        self.depth_cache_dir = self._sgbm.directory if self._sgbm is not None else None
+        self.depth_config = {"source": depth_source}
+        if self._sgbm is not None:
+            self.depth_config["sgbm"] = asdict(self._sgbm.params)
+
+    def __len__(self) -> int:
+        return len(self.stems)
+
+    def __repr__(self) -> str:
+        height, width = self.image_size
+        return f"Session({self.name!r}, {len(self)} frames, {width}x{height} px, root={str(self.root)!r})"
+
+    # ---- per-frame decoding ----
+
+    def _check_shape(self, path: Path, shape: tuple[int, ...], what: str) -> None:
+        """SessionError unless ``shape`` (an array's, channels ignored) is the left images' (H, W)."""
+        _check_image_shape(path, shape, self.image_size, what)
+
+    def _layer_path(self, files: dict[str, Path], stem: str, expected: Path, what: str) -> Path:
+        path = files.get(stem)
+        if path is None:
+            raise SessionError(expected, f"missing: expected {what} for frame {stem!r}")
+        return path
+
+    def image_path(self, side: str, index: int) -> Path | None:
+        """The ``side`` ("left" or "right") image file of frame ``index``, or None when there is none."""
+        if side not in ("left", "right"):
+            raise ValueError(f"side must be 'left' or 'right', got {side!r}")
+        files = self._left_files if side == "left" else self._right_files
+        return files.get(self.stems[index])
+
+    def _image(self, side: str, stem: str, decoded: dict[str, np.ndarray]) -> np.ndarray:
+        """Frame ``stem``'s ``side`` image, (H, W, 3) uint8 RGB, rectified if needed; memoized in ``decoded``."""
+        if side not in decoded:
+            files = self._left_files if side == "left" else self._right_files
+            expected = self.root / side / f"{stem}.png"
+            path = self._layer_path(files, stem, expected, f"a {side} image")
+            rgb = read_rgb(path)
+            self._check_shape(path, rgb.shape, f"{side} image")
+            if self.rectification is not None:
+                rgb = self.rectification.apply(side, rgb)
+            decoded[side] = rgb
+        return decoded[side]
+
+    def _mask(self, stem: str) -> np.ndarray:
+        expected = self.root / "masks" / f"{stem}.png"
+        path = self._layer_path(self._mask_files, stem, expected, "a tool mask PNG")
+        tool_mask = read_tool_mask(path, self.object_id)
+        self._check_shape(path, tool_mask.shape, "tool mask")
+        if self.rectification is not None:
+            tool_mask = self.rectification.apply("left", tool_mask, nearest=True)
+        return tool_mask
+
+    def _depth(self, stem: str, decoded: dict[str, np.ndarray]) -> tuple[np.ndarray, str]:
+        """(depth (H, W) float32 m NaN-invalid, origin "file" / "cached" / "computed") of frame ``stem``."""
+        cal = self.calibration
+        if self.depth_source == "depth":
+            path = self._layer_path(
+                self._depth_files, stem, self.root / "depth" / f"{stem}.npy",
+                "a depth map (.npy float32 m or .png uint16 mm)",
+            )
+            depth_m = read_depth_m(path)
+            self._check_shape(path, depth_m.shape, "depth map")
+            if self.rectification is not None:
+                depth_m = self.rectification.apply("left", depth_m, nearest=True)
+            return depth_m, "file"
+        if self.depth_source == "disparity":
+            path = self._layer_path(
+                self._depth_files, stem, self.root / "disparity" / f"{stem}.npy", "a disparity map (.npy float32 px)"
+            )
+            disparity = read_disparity_px(path)
+            self._check_shape(path, disparity.shape, "disparity map")
+            return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), "file"
+        left_path = self._left_files[stem]
+        right_path = self._layer_path(
+            self._right_files, stem, self.root / "right" / f"{stem}.png",
+            "a right image (SGBM depth needs the stereo pair)",
+        )
+        disparity, cached = self._sgbm.disparity(
+            stem, left_path, right_path,
+            lambda: (self._image("left", stem, decoded), self._image("right", stem, decoded)),
+        )
+        return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
+            "cached" if cached else "computed"
+        )
+
+    def load_depth(self, index: int, with_origin: bool = False):
+        """Frame ``index``'s depth (H, W) float32 m (NaN invalid), or a BadFrame.
+
+        With ``with_origin`` a (depth, origin) pair, origin = "file" (depth/ or disparity/),
+        "cached" or "computed" (SGBM). Used by `contact-viz depth` to fill the cache.
+        """
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for a session of {len(self)} frames")
+        stem = self.stems[index]
+        try:
+            depth_m, origin = self._depth(stem, {})
+        except SessionError as error:
+            return BadFrame(index=index, stem=stem, timestamp_s=float(self.timestamps_s[index]), error=error)
+        return (depth_m, origin) if with_origin else depth_m
+
+    def load_depth_rows(self, index: int, row0: int, row1: int) -> np.ndarray | BadFrame:
+        """Rows ``row0`` to ``row1 - 1`` of frame ``index``'s depth, (row1 - row0, W) float32 m,
+        read-only, values as stored (see read_depth_m); or a BadFrame.
+
+        From depth/*.npy files stored rectified, only those rows are read (`contact-viz extract`
+        needs the depth only around the tool); from any other source the whole map is decoded
+        and cut. The file's shape and dtype are checked either way.
+        """
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for a session of {len(self)} frames")
+        height = self.image_size[0]
+        if not 0 <= row0 <= row1 <= height:
+            raise ValueError(f"rows {row0}..{row1 - 1} out of range for images of {height} rows")
+        stem = self.stems[index]
+        try:
+            path = self._depth_files.get(stem) if self.depth_source == "depth" else None
+            if path is not None and path.suffix.lower() == ".npy" and self.rectification is None:
+                depth_m = read_depth_rows_m(path, row0, row1, self.image_size)
+            else:
+                depth_m, _ = self._depth(stem, {})
+                depth_m = depth_m[row0:row1]
+        except SessionError as error:
+            return BadFrame(index=index, stem=stem, timestamp_s=float(self.timestamps_s[index]), error=error)
+        depth_m.flags.writeable = False
+        return depth_m
+
+    def load_frame(self, index: int, layers: Sequence[str] = ("mask", "depth")) -> Frame | BadFrame:
+        """Decode the requested ``layers`` of frame ``index`` (synchronously); a BadFrame on any problem."""
+        wanted = _check_layers(layers)
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for a session of {len(self)} frames")
+        return self._load(index, wanted)
+
+    def _load(self, index: int, layers: frozenset[str]) -> Frame | BadFrame:
+        stem = self.stems[index]
+        timestamp_s = float(self.timestamps_s[index])
+        tool_mask = depth_m = left_rgb = right_rgb = None
+        decoded: dict[str, np.ndarray] = {}  # rectified images decoded for this frame, shared by the layers
+        try:
+            if "mask" in layers:
+                tool_mask = self._mask(stem)
+            if "depth" in layers:
+                depth_m, _ = self._depth(stem, decoded)
+                depth_m.flags.writeable = False  # whatever its source, a frame's depth is read-only
+            if "left" in layers:
+                left_rgb = self._image("left", stem, decoded)
+            if "right" in layers and stem in self._right_files:
+                right_rgb = self._image("right", stem, decoded)
+        except SessionError as error:
+            return BadFrame(index=index, stem=stem, timestamp_s=timestamp_s, error=error)
+        return Frame(
+            index=index,
+            stem=stem,
+            timestamp_s=timestamp_s,
+            tool_mask=tool_mask,
+            depth_m=depth_m,
+            left_rgb=left_rgb,
+            right_rgb=right_rgb,
+        )
+
+    def iter_frames(
+        self,
+        layers: Sequence[str] = ("mask", "depth"),
+        indices: Sequence[int] | None = None,
+        prefetch: int = 4,
+        workers: int = 1,
+    ) -> Iterator[Frame | BadFrame]:
+        """Yield the frames ``indices`` (default: all) in order, decoding only ``layers``.
+
+        Decoding runs in ``workers`` background threads, at most ``prefetch`` frames ahead of
+        the consumer, so it overlaps the caller's compute. Per-frame problems are yielded as
+        BadFrame. Closing the generator early (break) cancels pending work and joins the threads.
+        Arguments are checked now (ValueError / IndexError), not at the first ``next``.
+        """
+        wanted = _check_layers(layers)
+        if isinstance(prefetch, bool) or not isinstance(prefetch, int) or prefetch < 1:
+            raise ValueError(f"prefetch must be a positive integer, got {prefetch!r}")
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise ValueError(f"workers must be a positive integer, got {workers!r}")
+        order = list(range(len(self))) if indices is None else [int(i) for i in indices]
+        bad = [i for i in order if not 0 <= i < len(self)]
+        if bad:
+            raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(self)} frames")
+        return prefetched(functools.partial(self._load, layers=wanted), order, prefetch,
+                          workers=min(workers, prefetch), thread_name="contact-viz-decode")
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+def _check_layers(layers: Sequence[str]) -> frozenset[str]:
+    if isinstance(layers, str):
+        layers = (layers,)
+    wanted = frozenset(layers)
+    unknown = sorted(wanted - LAYERS)
+    if unknown:
+        raise ValueError(f"layers: unknown layer(s) {unknown}; expected a subset of {sorted(LAYERS)}")
+    return wanted
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(height, width) px from an image header (no full decode)."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except DECODE_ERRORS as exc:
+        raise SessionError(
+            path,
+            f"expected a readable PNG/JPEG left image to take the image size from ({type(exc).__name__}: {exc})",
+        ) from exc
+    if width <= 0 or height <= 0:
+        raise SessionError(path, f"expected a non-empty left image, found {width}x{height} px")
+    return height, width
+
+
+def open_session(
+    path: str | Path,
+    *,
+    object_id: int | None = None,
+    label_params: LabelParams = LabelParams(),
+    cache_dir: str | Path | None = None,
+    depth_method: str | None = "sgbm",
+    sgbm_params: SGBMParams | None = None,
+    require_masks: bool = True,
+) -> Session:
+    """Open and validate a session directory (see the module docstring for the format).
+
+    ``object_id`` picks one object id from palettized / single-channel masks (default: any
+    nonzero pixel is tool). ``label_params`` sets the force threshold of the contact labels.
+    ``depth_method`` computes depth from the stereo pair when there is neither depth/ nor
+    disparity/ ("sgbm", with ``sgbm_params``; None = never compute), cached under ``cache_dir``
+    (default: the package cache, see contact_viz.io.cache; never inside the session).
+    ``require_masks=False`` allows a session without masks/ (mask layers then give BadFrames),
+    e.g. to precompute depth. The chosen depth source is logged (INFO) and kept in
+    ``Session.depth_note``. Raises SessionError (naming the file and what was expected) on any
+    session-wide problem; warns (SessionWarning) about CSV rows naming stems that are not in left/.
+    """
+    if depth_method is not None and depth_method not in DEPTH_METHODS:
+        raise ValueError(f"depth_method must be one of {DEPTH_METHODS} or None, got {depth_method!r}")
+    if object_id is not None and (isinstance(object_id, bool) or not isinstance(object_id, int) or object_id < 1):
+        raise ValueError(f"object_id must be a positive integer (0 is background) or None, got {object_id!r}")
+    root = Path(path).expanduser()
+    if not root.exists():
+        raise SessionError(root, "missing: expected a session directory (left/, masks/, depth/, K.txt)")
+    if not root.is_dir():
+        raise SessionError(root, "expected a session directory (left/, masks/, depth/, K.txt), found a file")
+    root = root.resolve()
+
+    meta = _read_session_json(root / "session.json")
+    left_dir = root / "left"
+    if not left_dir.is_dir():
+        raise SessionError(left_dir, "missing: expected a directory of rectified left frames left/<stem>.png|jpg")
+    left_files = _list_stems(left_dir, IMAGE_SUFFIXES)
+    if not left_files:
+        raise SessionError(left_dir, "expected rectified left frames left/<stem>.png|jpg|jpeg, found none")
+    stems = sorted(left_files, key=natural_key)
+    image_size = _image_size(left_files[stems[0]])
+    stereo = read_calibration(root, image_size)
+    mask_files = _find_masks(root, required=require_masks)
+    right_dir = root / "right"
+    right_files = _list_stems(right_dir, IMAGE_SUFFIXES) if right_dir.is_dir() else {}
+    source = find_depth_source(root, right_files, stereo, depth_method)
+    sgbm_cache = None
+    if source.kind == "sgbm":
+        resolved = (sgbm_params or SGBMParams()).resolve(image_size[1])
+        sgbm_cache = DisparityCache.for_session(root, stereo.files, resolved, cache_dir)
+    note = f"{root.name}: {source.note}; {stereo.describe()}"
+    log.info(note)
+
+    fps = float(meta.get("fps", DEFAULT_FPS))
+    frames_csv = root / "frames.csv"
+    frame_times = _read_frames_csv(frames_csv, stems) if frames_csv.is_file() else None
+    timestamps_s = frame_times if frame_times is not None else np.arange(len(stems), dtype=np.float64) / fps
+
+    force_csv = root / "force.csv"
+    if force_csv.is_file():
+        force_xyz_n = _read_force_csv(force_csv, stems, frame_times, frames_csv)
+    else:
+        force_xyz_n = np.full((len(stems), 3), np.nan)
+    force_n = np.linalg.norm(force_xyz_n, axis=1)
+    labels = force_labels(force_n, label_params)
+    label_source = np.where(labels >= 0, "force", "none").astype("<U6")
+
+    labels_csv = root / "labels.csv"
+    if labels_csv.is_file():
+        manual_index, manual_contact = _read_labels_csv(labels_csv, stems)
+        labels[manual_index] = manual_contact
+        label_source[manual_index] = "manual"
+
+    return Session(
+        root=root,
+        name=meta.get("name") or root.name,
+        phantom=meta.get("phantom"),
+        task=meta.get("task"),
+        fps=fps,
+        calibration=stereo.calibration,
+        stems=stems,
+        image_size=image_size,
+        timestamps_s=timestamps_s,
+        force_xyz_n=force_xyz_n,
+        force_n=force_n,
+        labels=labels,
+        label_source=label_source,
+        left_files=left_files,
+        right_files=right_files,
+        mask_files=mask_files,
+        depth_files=source.files,
+        object_id=object_id,
+        depth_source=source.kind,
+        depth_note=note,
+        stereo=stereo,
+        sgbm_cache=sgbm_cache,
+    )
