@@ -1,0 +1,185 @@
+"""Writing a synthetic session to disk (``generate_session``): images, masks, depth, force, truth."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from contact_viz.io.atomic import atomic_write
+from contact_viz.io.jsonfile import write_json
+from contact_viz.params import to_dict
+
+from contact_viz.synth.params import SynthParams, STREAM_DEPTH, STREAM_LABELS, STREAM_TEXTURE, stream_rng
+from contact_viz.synth.scene import StereoCamera, stereo_camera, tissue_frame
+from contact_viz.synth.motion import ToolTrack, plan_tool_track, tissue_displacement
+from contact_viz.synth.sensors import manual_labels, measured_force, stereo_depth
+from contact_viz.synth.render import Renderer, tool_parts
+
+
+def davis_palette() -> list[int]:
+    """The DAVIS / PASCAL VOC palette (768 ints): index 0 black, 1 dark red (the tool), ..."""
+    palette = []
+    for index in range(256):
+        r = g = b = 0
+        c = index
+        for bit in range(8):
+            r |= ((c >> 0) & 1) << (7 - bit)
+            g |= ((c >> 1) & 1) << (7 - bit)
+            b |= ((c >> 2) & 1) << (7 - bit)
+            c >>= 3
+        palette += [r, g, b]
+    return palette
+
+
+_SESSION_FILES = ("session.json", "K.txt", "force.csv", "truth.csv", "labels.csv")
+_SESSION_DIRS = ("left", "right", "masks", "depth")
+
+
+def _check_target(out_dir: Path, overwrite: bool) -> None:
+    """Refuse a file, or a non-empty directory unless ``overwrite``; changes nothing."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise FileExistsError(f"{out_dir}: expected a directory (or a new path), found a file")
+    if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
+        raise FileExistsError(
+            f"{out_dir}: expected an empty or new directory; pass overwrite=True to replace a session there"
+        )
+
+
+def _install(work: Path, out_dir: Path) -> None:
+    """Move the finished session from ``work`` to ``out_dir``, session.json last.
+
+    A new or empty ``out_dir`` is replaced by a rename; in an existing one (overwrite) the previous
+    session's own files are removed first and other files are left alone.
+    """
+    if out_dir.is_dir() and not any(out_dir.iterdir()):
+        out_dir.rmdir()
+    if not out_dir.exists():
+        work.rename(out_dir)
+        return
+    for name in _SESSION_FILES:
+        (out_dir / name).unlink(missing_ok=True)
+    for name in _SESSION_DIRS:
+        if (out_dir / name).is_dir():
+            shutil.rmtree(out_dir / name)
+    for entry in sorted(work.iterdir(), key=lambda e: e.name == "session.json"):
+        entry.rename(out_dir / entry.name)
+    work.rmdir()
+
+
+def _write_frame(out_dir: Path, stem: str, views, depth: np.ndarray, jpeg_quality: int, palette: list[int]) -> None:
+    for name in ("left", "right"):
+        path = out_dir / name / f"{stem}.jpg"
+        if not cv2.imwrite(str(path), views[name]["image"], [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]):
+            raise OSError(f"{path}: could not write the JPEG image")
+    mask = Image.fromarray(views["left"]["tool"].astype(np.uint8))
+    mask.putpalette(palette)
+    mask.save(out_dir / "masks" / f"{stem}.png", compress_level=1)
+    np.save(out_dir / "depth" / f"{stem}.npy", depth.astype(np.float32))
+
+
+def _write_tables(out_dir: Path, params: SynthParams, camera: StereoCamera, track: ToolTrack) -> None:
+    with atomic_write(out_dir / "K.txt") as f:
+        f.write(" ".join(f"{x:.10g}" for x in camera.K.ravel()) + "\n")
+        f.write(f"{camera.baseline_m:.10g}\n")
+    force = measured_force(track, params)
+    with atomic_write(out_dir / "force.csv") as f:
+        f.write("frame,fx,fy,fz\n")
+        for i, (fx, fy, fz) in enumerate(force):
+            f.write(f"{i},{fx:.6f},{fy:.6f},{fz:.6f}\n")
+    magnitude = np.linalg.norm(track.force_true_n, axis=1)
+    with atomic_write(out_dir / "truth.csv") as f:
+        f.write("frame,timestamp,gap_m,indentation_m,force_true_n,contact,phase\n")
+        for i in range(track.frames):
+            f.write(
+                f"{i},{track.timestamp_s[i]:.6f},{track.gap_m[i]:.6f},{track.indentation_m[i]:.6f},"
+                f"{magnitude[i]:.6f},{int(track.contact[i])},{track.phase[i]}\n"
+            )
+    if params.task == "pulling":
+        labels = manual_labels(track.contact, params.label_jitter_frames, stream_rng(params, STREAM_LABELS))
+        with atomic_write(out_dir / "labels.csv") as f:
+            f.write("frame,contact\n")
+            for i, label in enumerate(labels):
+                f.write(f"{i},{label}\n")
+
+
+def generate_session(
+    out_dir: str | Path,
+    params: SynthParams = SynthParams(),
+    *,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> Path:
+    """Render a synthetic session into ``out_dir`` (created) and return its path.
+
+    Writes session.json, K.txt (9 numbers of K row-major, then the baseline in m), left/ and
+    right/ JPEGs, masks/ (palettized PNG, 1 = tool in the left view), depth/ (float32 z-depth in m,
+    0 = hole, left view), force.csv (frame,fx,fy,fz in N), truth.csv
+    (frame,timestamp,gap_m,indentation_m,force_true_n,contact,phase) and, for the glove (pulling
+    task), labels.csv (frame,contact). Frame stems are 000000, 000001, ... ``progress(done, total)``
+    is called after each frame. Raises FileExistsError for a non-empty ``out_dir`` unless
+    ``overwrite`` (then the session files there are replaced; other files are left alone).
+    """
+    if not isinstance(params, SynthParams):
+        raise TypeError(f"params must be a SynthParams, got {type(params).__name__}")
+    out_dir = Path(out_dir)
+    _check_target(out_dir, overwrite)
+    # Everything is written into a hidden sibling folder and moved into place when complete, so
+    # an interrupted run never leaves a partial session that reads like a whole one.
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        _render_session(work, out_dir.resolve().name, params, progress)
+        _install(work, out_dir)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def _render_session(out_dir: Path, name: str, params: SynthParams,
+                    progress: Callable[[int, int], None] | None) -> None:
+    """Write the whole session into the (new, empty) folder ``out_dir``."""
+    for sub in _SESSION_DIRS:
+        (out_dir / sub).mkdir()
+    camera, frame = stereo_camera(params), tissue_frame(params)
+    track = plan_tool_track(params)
+    renderer = Renderer(params, camera, frame, stream_rng(params, STREAM_TEXTURE))
+    palette = davis_palette()
+    _write_tables(out_dir, params, camera, track)
+
+    pending: list[Future] = []
+    with ThreadPoolExecutor(max_workers=1) as writer:
+        for i in range(params.frames):
+            deformed = track.press_m[i] > 0 or bool(np.any(track.pull_m[i]))
+            displacement = tissue_displacement(renderer.rest, track, i, params) if deformed else None
+            views = renderer.render(displacement, tool_parts(track, i, params))
+            left = views["left"]
+            depth = stereo_depth(
+                left["z"], views["right"]["z"], left["tool"], left["specular"], camera, params,
+                stream_rng(params, STREAM_DEPTH, i),
+            )
+            pending.append(writer.submit(_write_frame, out_dir, f"{i:06d}", views, depth, params.jpeg_quality, palette))
+            while pending and pending[0].done():
+                pending.pop(0).result()
+            if len(pending) > 2:  # bound memory: wait for the writer
+                pending.pop(0).result()
+            if progress is not None:
+                progress(i + 1, params.frames)
+        for fut in pending:
+            fut.result()
+
+    session = {
+        "name": name,
+        "phantom": params.phantom,
+        "task": params.task,
+        "fps": params.fps,
+        "generator": to_dict(params),
+    }
+    write_json(out_dir / "session.json", session)
