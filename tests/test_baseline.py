@@ -26,7 +26,6 @@ from contact_viz.baseline import (
     BaselineWarning,
     PlattScaling,
     SessionCrops,
-    _class_weights,
     build_model,
     extract_crops,
     fit_loso,
@@ -35,6 +34,7 @@ from contact_viz.baseline import (
     prepare_batch,
     raw_scores,
 )
+from contact_viz.baseline.loso import _class_weights
 from contact_viz.model.hmm import select_f1_threshold
 from contact_viz.io.session import open_session
 from contact_viz.synth import SynthParams, generate_session

@@ -15,12 +15,11 @@ from PIL import Image
 from contact_viz.io.atomic import atomic_write
 from contact_viz.io.jsonfile import write_json
 from contact_viz.params import to_dict
-
-from contact_viz.synth.params import SynthParams, STREAM_DEPTH, STREAM_LABELS, STREAM_TEXTURE, stream_rng
-from contact_viz.synth.scene import StereoCamera, stereo_camera, tissue_frame
 from contact_viz.synth.motion import ToolTrack, plan_tool_track, tissue_displacement
-from contact_viz.synth.sensors import manual_labels, measured_force, stereo_depth
+from contact_viz.synth.params import SynthParams, STREAM_DEPTH, STREAM_LABELS, STREAM_TEXTURE, stream_rng
 from contact_viz.synth.render import Renderer, tool_parts
+from contact_viz.synth.scene import StereoCamera, stereo_camera, tissue_frame
+from contact_viz.synth.sensors import manual_labels, measured_force, stereo_depth
 
 
 def davis_palette() -> list[int]:

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from contact_viz.synth.motion import ToolTrack, LAYOUTS, SHAFT_LENGTH_M
 from contact_viz.synth.params import REFERENCE_WIDTH_PX, SynthParams
 from contact_viz.synth.scene import StereoCamera, TissueFrame, phantom_height, surface_points
-from contact_viz.synth.motion import ToolTrack, LAYOUTS, SHAFT_LENGTH_M
 
 
 @dataclass(frozen=True)

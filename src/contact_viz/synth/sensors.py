@@ -7,9 +7,9 @@ import math
 import cv2
 import numpy as np
 
+from contact_viz.synth.motion import ToolTrack
 from contact_viz.synth.params import REFERENCE_WIDTH_PX, SynthParams, STREAM_FORCE, stream_rng
 from contact_viz.synth.scene import StereoCamera
-from contact_viz.synth.motion import ToolTrack
 
 
 def measured_force(track: ToolTrack, params: SynthParams) -> np.ndarray:
