@@ -156,22 +156,13 @@ def synth(
     typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}")
 
 
-class _Features:
-    """Features of one session for fit / evaluate / predict: from a session dir (cached extract)."""
-
-    def __init__(self, name: str, frames: list[str], signal, labels) -> None:
-        self.name, self.frames, self.signal, self.labels = name, frames, signal, labels
-
-
-def _load_features(sources: list[Path], params, label_params, object_id, cache_dir) -> list[_Features]:
-    """Features for fit / evaluate / predict, each source either a session directory (extracted
-    with ``params``, cached) or a features CSV written by `contact-viz extract`, whose saved
-    configuration must have the same patch parameters as ``params``."""
-    from contact_viz.pipeline.allocator import keep_freed_memory
+def _load_features(sources: list[Path], params, label_params, object_id, cache_dir) -> list:
+    """Features for fit / evaluate / predict (contact_viz.pipeline.features): each source a session
+    directory (extracted with ``params``, cached) or a features CSV with the same patch parameters."""
     from contact_viz.errors import SessionError
-    from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
-    from contact_viz.model.model_file import params_mismatch
     from contact_viz.io.session import open_session
+    from contact_viz.pipeline.allocator import keep_freed_memory
+    from contact_viz.pipeline.features import check_distinct_names, csv_features, session_features
     from contact_viz.pipeline.workers import DEFAULT_PROCESSES
 
     keep_freed_memory()
@@ -179,31 +170,24 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     for source in sources:
         try:
             if source.is_file():
-                file_params, name = read_features_config(source)
-                diff = params_mismatch(params, file_params)
-                if diff:
-                    _fail(f"{source}: features were computed with other patch parameters than the model's "
-                          f"({'; '.join(diff)}); re-extract them with the model's parameters")
-                rows = read_features(source)
-            else:
-                session = open_session(source, object_id=object_id, label_params=label_params,
-                                       cache_dir=cache_dir)
-                typer.echo(session.depth_note, err=True)
-                name = session.name
-                with _progress() as progress:
-                    task = progress.add_task(f"features {name}", total=len(session))
-                    rows, cached = cached_features(
-                        session, params, label_params=label_params, cache_dir=cache_dir,
-                        progress=lambda done: progress.update(task, completed=done), processes=DEFAULT_PROCESSES)
-                    if cached:
-                        progress.update(task, completed=len(session), description=f"features {name} (cached)")
+                out.append(csv_features(source, params))
+                continue
+            session = open_session(source, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+            typer.echo(session.depth_note, err=True)
+            with _progress() as progress:
+                task = progress.add_task(f"features {session.name}", total=len(session))
+                features = session_features(session, params, label_params, cache_dir=cache_dir,
+                                            progress=lambda done: progress.update(task, completed=done),
+                                            processes=DEFAULT_PROCESSES)
+                if features.cached:
+                    progress.update(task, completed=len(session), description=f"features {session.name} (cached)")
+            out.append(features)
         except (SessionError, ValueError, KeyError) as exc:
             _fail(str(exc))
-        signal, labels = feature_arrays(rows)
-        out.append(_Features(name, [str(r["frame"]) for r in rows], signal, labels))
-    names = [f.name for f in out]
-    if len(set(names)) != len(names):
-        _fail(f"session names must be distinct (set \"name\" in session.json); got {names}")
+    try:
+        check_distinct_names(out)
+    except ValueError as exc:
+        _fail(str(exc))
     return out
 
 

@@ -1,0 +1,67 @@
+"""Features of whole sessions for fitting and scoring: the per-frame rows of `contact-viz extract`
+and the HMM's inputs made from them.
+
+A source is either a session directory (extracted with the given patch parameters and cached
+outside it, see :func:`contact_viz.pipeline.extract.cached_features`) or a features CSV written by
+`contact-viz extract`, whose saved configuration must hold the same patch parameters. `fit`,
+`evaluate` and `predict` and the paper's protocol (:mod:`contact_viz.paper`) all read features here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from contact_viz.io.session import Session
+from contact_viz.model.model_file import params_mismatch
+from contact_viz.params import LabelParams, PatchParams
+from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
+
+
+@dataclass
+class Features:
+    """Features of one session."""
+
+    name: str  # session name (session.json "name", else the folder name)
+    frames: list[str]  # frame stems, in order
+    signal: np.ndarray  # (T,) float64 distance signal, NaN = no patch
+    labels: np.ndarray  # (T,) int8 contact labels, -1 = unknown
+    rows: list[dict]  # the feature rows (column -> text), as in features.csv
+    cached: bool = False  # read from the features cache (or a features CSV) instead of extracted now
+
+
+def features_from_rows(name: str, rows: list[dict], cached: bool = False) -> Features:
+    """:class:`Features` of the feature ``rows`` of session ``name``."""
+    signal, labels = feature_arrays(rows)
+    return Features(name, [str(r["frame"]) for r in rows], signal, labels, rows, cached)
+
+
+def session_features(session: Session, params: PatchParams, label_params: LabelParams = LabelParams(), *,
+                     cache_dir: str | Path | None = None, progress: Callable[[int], None] | None = None,
+                     processes: int = 1) -> Features:
+    """Features of an opened ``session``: extracted with ``params`` (spread over ``processes``), or
+    read back from the cache when the session's files and the parameters are unchanged."""
+    rows, cached = cached_features(session, params, label_params=label_params, cache_dir=cache_dir,
+                                   progress=progress, processes=processes)
+    return features_from_rows(session.name, rows, cached)
+
+
+def csv_features(path: Path, params: PatchParams) -> Features:
+    """Features read from a features CSV of `contact-viz extract`; a ValueError if the file was
+    computed with other patch parameters than ``params``."""
+    file_params, name = read_features_config(path)
+    diff = params_mismatch(params, file_params)
+    if diff:
+        raise ValueError(f"{path}: features were computed with other patch parameters than the model's "
+                         f"({'; '.join(diff)}); re-extract them with the model's parameters")
+    return features_from_rows(name, read_features(path), cached=True)
+
+
+def check_distinct_names(features: Sequence[Features]) -> None:
+    """A ValueError unless every session name is distinct (the LOSO folds and tables are keyed by name)."""
+    names = [f.name for f in features]
+    if len(set(names)) != len(names):
+        raise ValueError(f"session names must be distinct (set \"name\" in session.json); got {names}")
