@@ -28,7 +28,9 @@ from contact_viz.pipeline.extract import BadFrameWarning  # noqa: E402
 from contact_viz.model.hmm import LosoEnsemble  # noqa: E402
 from contact_viz.model.model_file import ContactModel  # noqa: E402
 from contact_viz.params import LabelParams, PatchParams  # noqa: E402
-from contact_viz.geometry.patch import LAYER_BAND, LAYER_INTERIOR, REASON_EMPTY_MASK, compute_patch  # noqa: E402
+from contact_viz.geometry.patch import (  # noqa: E402
+    LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE, REASON_EMPTY_MASK, compute_patch,
+)
 from contact_viz.geometry.pointcloud import (  # noqa: E402
     CloudParams,
     backproject,
@@ -634,7 +636,9 @@ def test_diagnostic_params_are_checked():
 
 
 def test_styles_cover_every_class_series_and_diagnostic():
-    assert [s.class_id for s in LAYER_STYLES] == [0, 1, 2, 3, 4]
+    # one style per layer class of the patch, in class order
+    assert [s.class_id for s in LAYER_STYLES] == sorted({LAYER_BACKGROUND, LAYER_INTERIOR, LAYER_TOOL_EDGE,
+                                                          LAYER_RING, LAYER_BAND})
     assert layer_style(LAYER_BAND).name == "exterior band"
     assert len({s.rgba for s in LAYER_STYLES}) == len(LAYER_STYLES)
     assert set(DIAGNOSTIC_STYLES) == set(DIAGNOSTIC_CODES)
