@@ -157,38 +157,38 @@ def synth(
 
 
 def _load_features(sources: list[Path], params, label_params, object_id, cache_dir) -> list:
-    """Features for fit / evaluate / predict (contact_viz.pipeline.features): each source a session
-    directory (extracted with ``params``, cached) or a features CSV with the same patch parameters."""
+    """Features for fit / evaluate / predict (contact_viz.pipeline.features.load_features), with a
+    progress bar per session; exits with one line on a bad source."""
     from contact_viz.errors import SessionError
-    from contact_viz.io.session import open_session
     from contact_viz.pipeline.allocator import keep_freed_memory
-    from contact_viz.pipeline.features import check_distinct_names, csv_features, session_features
+    from contact_viz.pipeline.features import load_features
     from contact_viz.pipeline.workers import DEFAULT_PROCESSES
 
     keep_freed_memory()
-    out = []
-    for source in sources:
-        try:
-            if source.is_file():
-                out.append(csv_features(source, params))
-                continue
-            session = open_session(source, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
-            typer.echo(session.depth_note, err=True)
-            with _progress() as progress:
-                task = progress.add_task(f"features {session.name}", total=len(session))
-                features = session_features(session, params, label_params, cache_dir=cache_dir,
-                                            progress=lambda done: progress.update(task, completed=done),
-                                            processes=DEFAULT_PROCESSES)
-                if features.cached:
-                    progress.update(task, completed=len(session), description=f"features {session.name} (cached)")
-            out.append(features)
-        except (SessionError, ValueError, KeyError) as exc:
-            _fail(str(exc))
+    bars = []  # one progress bar per session directory, shown while its features are computed
+
+    def opened(session):
+        typer.echo(session.depth_note, err=True)
+        bar = _progress()
+        bar.start()
+        task = bar.add_task(f"features {session.name}", total=len(session))
+        bars.append((bar, task))
+        return lambda frames_done: bar.update(task, completed=frames_done)
+
+    def finished(session, features):
+        bar, task = bars[-1]
+        if features.cached:
+            bar.update(task, completed=len(session), description=f"features {session.name} (cached)")
+        bar.stop()
+
     try:
-        check_distinct_names(out)
-    except ValueError as exc:
+        return load_features(sources, params, label_params, object_id=object_id, cache_dir=cache_dir,
+                             processes=DEFAULT_PROCESSES, on_open=opened, on_done=finished)
+    except (SessionError, ValueError, KeyError) as exc:
         _fail(str(exc))
-    return out
+    finally:
+        for bar, _ in bars:
+            bar.stop()
 
 
 @app.command()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from contact_viz.io.session import Session
+from contact_viz.io.session import Session, open_session
 from contact_viz.model.model_file import params_mismatch
 from contact_viz.params import LabelParams, PatchParams
 from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
@@ -65,3 +65,29 @@ def check_distinct_names(features: Sequence[Features]) -> None:
     names = [f.name for f in features]
     if len(set(names)) != len(names):
         raise ValueError(f"session names must be distinct (set \"name\" in session.json); got {names}")
+
+
+def load_features(sources: Sequence[Path], params: PatchParams, label_params: LabelParams = LabelParams(), *,
+                  object_id: int | None = None, cache_dir: str | Path | None = None, processes: int = 1,
+                  on_open: Callable[[Session], Callable[[int], None] | None] | None = None,
+                  on_done: Callable[[Session, Features], None] | None = None) -> list[Features]:
+    """Features of every source, each a session directory (opened with ``object_id`` and
+    ``label_params``, extracted with ``params`` or read from the cache) or a features CSV with the
+    same patch parameters. ``on_open(session)`` is called when a session is opened and may return a
+    ``progress(frames done)`` callback; ``on_done(session, features)`` when its features are ready.
+    Raises SessionError or ValueError naming the source, also when two sessions share a name."""
+    out = []
+    for source in sources:
+        source = Path(source)
+        if source.is_file():
+            out.append(csv_features(source, params))
+            continue
+        session = open_session(source, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+        progress = on_open(session) if on_open is not None else None
+        features = session_features(session, params, label_params, cache_dir=cache_dir, progress=progress,
+                                    processes=processes)
+        if on_done is not None:
+            on_done(session, features)
+        out.append(features)
+    check_distinct_names(out)
+    return out
