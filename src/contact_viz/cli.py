@@ -165,7 +165,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     from contact_viz.pipeline.workers import DEFAULT_PROCESSES
 
     keep_freed_memory()
-    bars = []  # one progress bar per session directory, shown while its features are computed
+    bars = []  # the progress bar of the session whose features are being computed (at most one)
 
     def opened(session):
         typer.echo(session.depth_note, err=True)
@@ -176,7 +176,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
         return lambda frames_done: bar.update(task, completed=frames_done)
 
     def finished(session, features):
-        bar, task = bars[-1]
+        bar, task = bars.pop()
         if features.cached:
             bar.update(task, completed=len(session), description=f"features {session.name} (cached)")
         bar.stop()
@@ -187,7 +187,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     except (SessionError, ValueError, KeyError) as exc:
         _fail(str(exc))
     finally:
-        for bar, _ in bars:
+        for bar, _ in bars:  # interrupted by an error
             bar.stop()
 
 
