@@ -18,9 +18,9 @@ from PIL import Image
 from contact_viz.errors import SessionError
 from contact_viz.io.npy_rows import read_npy_rows
 from contact_viz.io.palette_png import is_palette_png, palette_indices
+from contact_viz.params import MM_PER_M
 
 
-MM_PER_M = 1000.0  # millimetres per metre (uint16 depth PNGs hold millimetres)
 # Exceptions that mean "this file could not be decoded" (PIL raises SyntaxError for some broken PNGs).
 DECODE_ERRORS = (OSError, ValueError, EOFError, SyntaxError, zlib.error, cv2.error)
 
@@ -202,3 +202,19 @@ def read_rgb(path: Path) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
+
+
+def read_image_size(path: Path) -> tuple[int, int]:
+    """(height, width) px of a left image from its header (no full decode); the session reader and the
+    importers take the session's image size from it."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except DECODE_ERRORS as exc:
+        raise SessionError(
+            path,
+            f"expected a readable PNG/JPEG left image to take the image size from ({type(exc).__name__}: {exc})",
+        ) from exc
+    if width <= 0 or height <= 0:
+        raise SessionError(path, f"expected a non-empty left image, found {width}x{height} px")
+    return height, width
