@@ -259,6 +259,15 @@ def select_f1_threshold(scores: Any, labels: Any) -> float:
 # --------------------------------------------------------------------------------------------
 
 
+def _check_keys(data: dict[str, Any], expected: set[str], where: str) -> None:
+    """ValueError naming ``where`` unless ``data`` has exactly the keys ``expected``."""
+    if set(data) != expected:
+        raise ValueError(
+            f"{where}: expected keys {sorted(expected)}, "
+            f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
+        )
+
+
 def _check_sessions(
     signals: Sequence[Any], labels: Sequence[Any], names: Sequence[str]
 ) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -365,12 +374,8 @@ class SupervisedGaussianHMM:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SupervisedGaussianHMM:
         """Rebuild a fitted model from ``to_dict`` output; missing or unknown keys are an error."""
-        expected = {"params", "means", "vars", "transmat", "startprob", "n_frames", "transition_counts"}
-        if set(data) != expected:
-            raise ValueError(
-                f"SupervisedGaussianHMM.from_dict: expected keys {sorted(expected)}, "
-                f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
-            )
+        _check_keys(data, {"params", "means", "vars", "transmat", "startprob", "n_frames", "transition_counts"},
+                    "SupervisedGaussianHMM.from_dict")
         model = cls(_params_from_dict(HMMParams, data["params"]))
         means, vars_, transmat, startprob = _check_model(
             data["means"], data["vars"], data["transmat"], data["startprob"]
@@ -463,12 +468,7 @@ class LosoEnsemble:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LosoEnsemble:
         """Rebuild a fitted ensemble from ``to_dict`` output; missing or unknown keys are an error."""
-        expected = {"params", "session_names", "models", "threshold", "oof_posteriors"}
-        if set(data) != expected:
-            raise ValueError(
-                f"LosoEnsemble.from_dict: expected keys {sorted(expected)}, "
-                f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
-            )
+        _check_keys(data, {"params", "session_names", "models", "threshold", "oof_posteriors"}, "LosoEnsemble.from_dict")
         n = len(data["session_names"])
         if len(data["models"]) != n or len(data["oof_posteriors"]) != n or n < 2:
             raise ValueError(
