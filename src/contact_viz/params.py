@@ -48,23 +48,26 @@ class _Range:
     pair: bool = False  # a (lo, hi) pair of numbers with lo <= hi, both within the bounds; stored as floats
 
 
-def checked(default: Any = dataclasses.MISSING, *, default_factory: Any = dataclasses.MISSING,
+def checked(default: Any, *,
             ge: float | None = None, gt: float | None = None, le: float | None = None, lt: float | None = None,
             odd: bool = False, multiple_of: int | None = None, choices: Any = None, pair: bool = False) -> Any:
     """A dataclass field with a range that :func:`check_fields` enforces (see the module docstring)."""
     rule = _Range(ge, gt, le, lt, odd, multiple_of, None if choices is None else tuple(choices), pair)
-    return dataclasses.field(default=default, default_factory=default_factory, metadata={"range": rule})
+    return dataclasses.field(default=default, metadata={"range": rule})
 
 
 def _number_text(value: float) -> str:
     return f"{value:g}"
 
 
-def _bounds_text(rule: _Range, name: str = "") -> str:
-    """' >= 0', ' in (0, 1]', or with ``name`` for pairs: '0 < lo <= hi <= 1'."""
-    low = (rule.ge, "[", ">=", "<=") if rule.ge is not None else (rule.gt, "(", ">", "<") if rule.gt is not None else None
-    high = (rule.le, "]", "<=") if rule.le is not None else (rule.lt, ")", "<") if rule.lt is not None else None
-    if name:
+def _bounds_text(rule: _Range, pair: bool = False) -> str:
+    """The bounds in words: ' >= 0', ' in (0, 1]', '' for none; for a pair: '0 < lo <= hi <= 1'."""
+    low = high = None  # (bound, interval bracket, operator before the value, operator after it)
+    if rule.ge is not None or rule.gt is not None:
+        low = (rule.ge, "[", ">=", "<=") if rule.ge is not None else (rule.gt, "(", ">", "<")
+    if rule.le is not None or rule.lt is not None:
+        high = (rule.le, "]", "<=") if rule.le is not None else (rule.lt, ")", "<")
+    if pair:
         text = "lo <= hi"
         if low:
             text = f"{_number_text(low[0])} {low[3]} {text}"
@@ -84,10 +87,10 @@ def _expected(kind: str | None, optional: bool, rule: _Range) -> str:
     if rule.choices is not None:
         text = f"one of {list(rule.choices)}"
     elif rule.pair:
-        text = f"a (lo, hi) pair of numbers with {_bounds_text(rule, 'pair')}"
+        text = f"a (lo, hi) pair of numbers with {_bounds_text(rule, pair=True)}"
     elif kind == "int":
-        noun = "an odd integer" if rule.odd else f"a multiple of {rule.multiple_of}" if rule.multiple_of else "an integer"
-        text = noun + _bounds_text(rule)
+        text = "an odd integer" if rule.odd else f"a multiple of {rule.multiple_of}" if rule.multiple_of else "an integer"
+        text += _bounds_text(rule)
     elif kind == "float":
         text = "a finite number" + _bounds_text(rule)
     elif kind == "bool":
@@ -139,6 +142,8 @@ def _field_rules(cls: type) -> tuple[tuple[str, str | None, bool, _Range], ...]:
             kinds = [p for p in parts if p != "None"]
             kind = kinds[0] if len(kinds) == 1 and kinds[0] in _CHECKED_KINDS else None
             rule = f.metadata.get("range", _Range())
+            if kind not in ("int", "float") and not rule.pair and rule.choices is None and rule != _Range():
+                raise TypeError(f"{cls.__name__}.{f.name}: a range needs an int or float annotation, got {annotation}")
             if kind is not None or rule.pair or rule.choices is not None:
                 out.append((f.name, kind, optional, rule))
         rules = _FIELD_RULES[cls] = tuple(out)

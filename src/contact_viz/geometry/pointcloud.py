@@ -45,7 +45,8 @@ UINT16_MAX = np.iinfo(np.uint16).max
 class CloudParams:
     """Density of the viewer's point cloud."""
 
-    near_radius_px: int = checked(40, ge=0)  # full density in the square of half-side this around the patch centre, px (0 = none)
+    # full density in the square of half-side this around the patch centre, px (0 = none)
+    near_radius_px: int = checked(40, ge=0)
     stride_px: int = checked(6, ge=1)  # elsewhere keep every stride-th pixel along rows and columns, px (1 = all)
     voxel_m: float = checked(0.0015, ge=0)  # then merge those points into voxels of this edge, m (0 = no merging)
 

@@ -62,7 +62,8 @@ class SGBMParams:
     disparity_range_fraction: float = checked(0.125, gt=0, le=1)
     min_disparity: int = 0  # smallest disparity searched, px
     block_size: int | None = checked(None, ge=1, odd=True)  # matching block side, px (odd, >= 3); None = from the width
-    width_per_block_px: float = checked(320.0, gt=0)  # when block_size is None: block = width / this, as an odd number >= 3
+    # when block_size is None: block = width / this, as an odd number >= 3
+    width_per_block_px: float = checked(320.0, gt=0)
     p1_factor: int = checked(8, gt=0)  # P1 = p1_factor * channels * block^2: penalty for a 1 px disparity change
     p2_factor: int = 32  # P2 = p2_factor * channels * block^2: penalty for larger disparity jumps (> p1_factor)
     uniqueness_ratio: int = 10  # best cost must beat the second best by this margin, %

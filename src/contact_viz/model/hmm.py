@@ -38,7 +38,8 @@ STATIONARY_RANK_TOL = 1e-9  # singular values below this count as zero when test
 class HMMParams:
     """Fixed (not learned) settings of the supervised HMM."""
 
-    var_floor: float = checked(1e-6, gt=0)  # lower bound on each state's emission variance, dec^2 (signal units squared)
+    # lower bound on each state's emission variance, dec^2 (signal units squared)
+    var_floor: float = checked(1e-6, gt=0)
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -468,7 +469,8 @@ class LosoEnsemble:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LosoEnsemble:
         """Rebuild a fitted ensemble from ``to_dict`` output; missing or unknown keys are an error."""
-        _check_keys(data, {"params", "session_names", "models", "threshold", "oof_posteriors"}, "LosoEnsemble.from_dict")
+        _check_keys(data, {"params", "session_names", "models", "threshold", "oof_posteriors"},
+                    "LosoEnsemble.from_dict")
         n = len(data["session_names"])
         if len(data["models"]) != n or len(data["oof_posteriors"]) != n or n < 2:
             raise ValueError(

@@ -66,10 +66,12 @@ class DebuggerOptions:
     depth_units_per_m: float = checked(10000.0, gt=0)  # uint16 depth units per metre (10000: 0.1 mm steps up to 6.5 m)
     points: bool = True  # log the RGB point cloud
     cloud: CloudParams = field(default_factory=CloudParams)  # point cloud density
-    color_reduction: int = checked(2, choices=_REDUCED_COLOR)  # decode left JPEGs at 1/n size for the point colours (1, 2, 4 or 8)
+    # decode left JPEGs at 1/n size for the point colours (1, 2, 4 or 8)
+    color_reduction: int = checked(2, choices=_REDUCED_COLOR)
     patch_params: PatchParams = field(default_factory=PatchParams)  # the patch (must match the model's)
     diagnostics: DiagnosticParams = field(default_factory=DiagnosticParams)  # thresholds of the checks
-    flush_every: int = checked(15, ge=1)  # flush the recording to its sinks every this many frames (bounds memory and loss), frames
+    # flush the recording to its sinks every this many frames (bounds memory and loss), frames
+    flush_every: int = checked(15, ge=1)
     prefetch: int = checked(4, ge=1)  # images read ahead of the frame being logged, frames
 
     def __post_init__(self) -> None:
