@@ -375,10 +375,6 @@ class Session:
         Arguments are checked now (ValueError / IndexError), not at the first ``next``.
         """
         wanted = _check_layers(layers)
-        if isinstance(prefetch, bool) or not isinstance(prefetch, int) or prefetch < 1:
-            raise ValueError(f"prefetch must be a positive integer, got {prefetch!r}")
-        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-            raise ValueError(f"workers must be a positive integer, got {workers!r}")
         order = list(range(len(self))) if indices is None else [int(i) for i in indices]
         bad = [i for i in order if not 0 <= i < len(self)]
         if bad:
