@@ -18,6 +18,8 @@ from contact_viz.params import to_dict as _params_to_dict
 
 # center_source codes of SessionCrops
 TIP_FOUND, LAST_TIP, IMAGE_CENTER = 0, 1, 2
+
+
 @dataclass(frozen=True, eq=False)
 class SessionCrops:
     """The tool-tip crops of one session (T frames), ready for training or prediction."""
@@ -77,8 +79,6 @@ def extract_crops(
     inputs reads it back without decoding anything. Without it they are held in memory
     (crop_px**2 * 3 bytes per frame: 164 kB at 234 px). ``progress(done, total)`` after each frame.
     """
-    if isinstance(crop_px, bool) or not isinstance(crop_px, int) or crop_px < 1:
-        raise ValueError(f"crop_px: expected a positive integer number of px, got {crop_px!r}")
     n_frames = len(session)
     height, width = session.image_size
     labels = np.array(session.labels, dtype=np.int8)

@@ -10,13 +10,12 @@ from typing import Any
 import numpy as np
 
 from contact_viz.baseline.params import CONTACT, NO_CONTACT, UNKNOWN_LABEL
+from contact_viz.model.hmm import sigmoid as _sigmoid
 
 
 _PLATT_MAX_ITER = 100  # Newton iterations of the Platt fit, count
 _PLATT_GRAD_TOL = 1e-10  # stop when the mean log-loss gradient is below this, -
 _PLATT_MAX_HALVINGS = 60  # step halvings of one Newton line search, count
-def _sigmoid(z: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * z))  # = 1 / (1 + exp(-z)), without overflow
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from contact_viz.io.session import Session, open_session
-from contact_viz.model.model_file import params_mismatch
+from contact_viz.model.model_file import check_params
 from contact_viz.params import LabelParams, PatchParams
 from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
 
@@ -53,10 +53,7 @@ def csv_features(path: Path, params: PatchParams) -> Features:
     """Features read from a features CSV of `contact-viz extract`; a ValueError if the file was
     computed with other patch parameters than ``params``."""
     file_params, name = read_features_config(path)
-    diff = params_mismatch(params, file_params)
-    if diff:
-        raise ValueError(f"{path}: features were computed with other patch parameters than the model's "
-                         f"({'; '.join(diff)}); re-extract them with the model's parameters")
+    check_params(params, file_params, str(path))
     return features_from_rows(name, read_features(path), cached=True)
 
 
