@@ -17,5 +17,14 @@ class SessionError(ValueError):
         super().__init__(f"{self.path}: {expected}")
 
 
+class SessionFormatError(SessionError):
+    """A frame's file decodes but holds the wrong kind of data (shape, dtype, channels, bit depth).
+
+    Such a fault is usually shared by a whole folder: when the first frame's file has it (and so
+    does the last's), the session is refused up front (contact_viz.io.session.open_session)
+    instead of every frame being skipped one by one.
+    """
+
+
 class SessionWarning(UserWarning):
     """Something in a session is odd but usable (e.g. a CSV row for a stem not in left/)."""
