@@ -26,5 +26,10 @@ class SessionFormatError(SessionError):
     """
 
 
+class NoPatchWarning(UserWarning):
+    """A frame was read but its input gives nothing to measure (no valid depth around the tool,
+    a mask without background); the message names the file (contact_viz.console.no_patch_message)."""
+
+
 class SessionWarning(UserWarning):
     """Something in a session is odd but usable (e.g. a CSV row for a stem not in left/)."""

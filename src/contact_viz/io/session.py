@@ -231,6 +231,14 @@ class Session:
         files = self._left_files if side == "left" else self._right_files
         return files.get(self.stems[index])
 
+    def layer_file(self, layer: str, stem: str) -> Path | None:
+        """The file frame ``stem``'s "mask" or "depth" (depth/ or disparity/) is read from; None
+        when there is none (a missing file, SGBM depth)."""
+        files = {"mask": self._mask_files, "depth": self._depth_files}.get(layer)
+        if files is None:
+            raise ValueError(f"layer must be 'mask' or 'depth', got {layer!r}")
+        return files.get(stem)
+
     def _image(self, side: str, stem: str, decoded: dict[str, np.ndarray]) -> np.ndarray:
         """Frame ``stem``'s ``side`` image, (H, W, 3) uint8 RGB, rectified if needed; memoized in ``decoded``."""
         if side not in decoded:
