@@ -98,6 +98,27 @@ def _progress():
                     TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
 
 
+class _LazyProgress:
+    """A progress bar that appears with the first update, so a command refused up front prints none."""
+
+    def __init__(self, description: str, total: int | None) -> None:
+        self.description, self.total, self.progress, self.task = description, total, None, None
+
+    def update(self, **fields) -> None:
+        if self.progress is None:
+            self.progress = _progress()
+            self.progress.start()
+            self.task = self.progress.add_task(self.description, total=self.total)
+        self.progress.update(self.task, **fields)
+
+    def __enter__(self) -> "_LazyProgress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+
+
 def _print_report(report) -> None:
     """The frame warnings of a run, then its summary line (contact_viz.console.FrameReport)."""
     for line in report.lines:
@@ -205,11 +226,10 @@ def synth(
         _fail(f"--phantom must be one of {', '.join(PHANTOMS)}; got {phantom!r}")
     width, height = _parse_size(size)
     params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height)
-    with _progress() as progress:
-        task = progress.add_task(f"synth {phantom}", total=frames)
+    with _LazyProgress(f"synth {phantom}", frames) as progress:  # no bar before the target is accepted
         try:
             path = generate_session(out_dir, params, overwrite=overwrite,
-                                    progress=lambda done, total: progress.update(task, completed=done))
+                                    progress=lambda done, total: progress.update(completed=done))
         except (FileExistsError, ValueError) as exc:
             _fail(str(exc).replace("pass overwrite=True", "pass --overwrite"))
     typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}")
@@ -474,10 +494,14 @@ def view(
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
-    from contact_viz.viz.debugger import DebuggerOptions, run_debugger
+    from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames
     from contact_viz.geometry.pointcloud import CloudParams
     from contact_viz.viz.rerun_log import default_blueprint, open_recording
 
+    try:
+        select_frames(len(session), start, end, stride)  # before any sink is opened
+    except ValueError as exc:
+        _fail(f"--{str(exc)}")
     if spawn is None:
         spawn = _has_display() and save is None and not serve and connect is None
     if not (spawn or serve or connect or save):
