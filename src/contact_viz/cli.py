@@ -18,6 +18,17 @@ class _Edge(TyperGroup):
     """Bad input that reaches the edge (an OSError, SessionError, ValueError, gRPC error) is one line,
     ``error: PATH: what was expected``, and exit status 2; --verbose shows the traceback."""
 
+    def format_commands(self, ctx, formatter) -> None:
+        """The command list with each command's whole first sentence, wrapped (click cuts it with "...")."""
+        import inspect
+
+        rows = [(name, " ".join(inspect.cleandoc(command.help or "").split("\n\n")[0].split()))
+                for name in self.list_commands(ctx)
+                if (command := self.get_command(ctx, name)) is not None and not command.hidden]
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
     def invoke(self, ctx):
         from contact_viz import console
 

@@ -58,6 +58,7 @@ def quiet_libraries(verbose: bool = False) -> None:
     VERBOSE = bool(verbose)
     if verbose:
         return
+    warnings.showwarning = _one_line_warning
     os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")  # OpenCV's "[ WARN:0@...]" lines (PNG buffer incomplete ...)
     os.environ.setdefault("RUST_LOG", "off")  # Rerun's Rust log (gRPC retries, sink errors): reported by us
     import sys
@@ -70,6 +71,13 @@ def quiet_libraries(verbose: bool = False) -> None:
             cv2.setLogLevel(2)
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Python warnings as ``warning: MESSAGE`` (no source file and line), as the commands print them."""
+    import sys
+
+    print(f"warning: {message}", file=file or sys.stderr)
+
+
 def describe_error(exc: BaseException) -> str | None:
     """The one line (without ``error: ``) that tells the user what was wrong, or None when
     ``exc`` is not about the input (a bug: the caller lets its traceback through)."""
@@ -79,8 +87,8 @@ def describe_error(exc: BaseException) -> str | None:
         return str(exc)
     if isinstance(exc, OSError):
         return describe_os_error(exc)
-    if isinstance(exc, (ValueError, KeyError, IndexError)):
-        text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+    if isinstance(exc, ValueError):
+        text = str(exc)
         return text.splitlines()[0] if text else type(exc).__name__
     if isinstance(exc, RuntimeError):
         text = str(exc)
@@ -257,7 +265,7 @@ class FrameReport:
     def add_warnings(self, caught: Iterable[warnings.WarningMessage]) -> None:
         """Warnings recorded during a run: frame warnings (BadFrameWarning, NoPatchWarning)
         are counted, any other (e.g. a CSV row naming no frame) becomes one plain line."""
-        from contact_viz.errors import NoPatchWarning
+        from contact_viz.errors import NoPatchWarning, SessionWarning
         from contact_viz.pipeline.extract import BadFrameWarning
 
         for w in caught:
@@ -268,7 +276,7 @@ class FrameReport:
             elif issubclass(w.category, NoPatchWarning):
                 self.lines.append(f"warning: {message}")
                 self.kinds[EMPTY_DEPTH if "no valid depth" in message else FULL_MASK] += 1
-            else:
+            elif VERBOSE or issubclass(w.category, SessionWarning):
                 self.other(message)
 
 
