@@ -437,6 +437,10 @@ SLIPS = {
     "fit SESSION/K.txt": (lambda s, t: ["fit", str(s / "K.txt"), str(s), "-o", str(t / "m.json")],
                           r"K\.txt: expected a session directory or a features CSV"),
     "fit -o a directory": (lambda s, t: ["fit", str(s), str(s), "-o", str(t)], r"-o/--output: is a directory"),
+    "depth -o /proc": (lambda s, t: ["depth", str(s), "-o", "/proc/dd"], r"/proc/dd: -o/--output: cannot make a directory"),
+    "depth -o a file": (lambda s, t: ["depth", str(s), "-o", str(s / "K.txt")], r"K\.txt: -o/--output: is a file"),
+    "import unknown kind": (lambda s, t: ["import", "foo", str(s), str(t / "new")], r"KIND must be one of dvrk, yang2024"),
+    "import missing source": (lambda s, t: ["import", "dvrk", str(t / "nope"), str(t / "new")], r"nope: missing"),
     "predict no model": (lambda s, t: ["predict", str(t / "m.json"), str(s), "-o", str(t / "p.csv")], r"m\.json"),
     "evaluate --json a directory": (lambda s, t: ["evaluate", str(t / "m.json"), str(s), "--json", str(t)],
                                     r"--json: is a directory"),
@@ -513,3 +517,28 @@ def test_help_at_80_columns():
     version = subprocess.run([sys.executable, "-m", "contact_viz.cli", "--version"], capture_output=True, text=True,
                              timeout=60)
     assert version.returncode == 0 and version.stdout.startswith("contact-viz ")
+
+
+def _tiny_model(path: Path) -> Path:
+    """A model.json fitted on made-up signals (the model's numbers do not matter here)."""
+    from contact_viz.model.hmm import LosoEnsemble
+    from contact_viz.model.model_file import ContactModel, save_model
+    from contact_viz.params import LabelParams, PatchParams
+
+    rng = np.random.default_rng(0)
+    labels = [np.tile(np.repeat([0, 1], 10), 3).astype(np.int8) for _ in range(3)]
+    signals = [y * 1.0 + rng.normal(0, 0.3, y.size) for y in labels]
+    ensemble = LosoEnsemble().fit(signals, labels, session_names=["a", "b", "c"])
+    return save_model(ContactModel(ensemble=ensemble, patch_params=PatchParams(), label_params=LabelParams(),
+                                   training_sessions=()), path)
+
+
+def test_view_params_that_differ_from_the_model_say_what_to_do(session, tmp_path):
+    model = _tiny_model(tmp_path / "m.json")
+    (tmp_path / "p.json").write_text('{"n1": 41}')
+    rrd = tmp_path / "v.rrd"
+    result = cli(["view", str(session), "--model", str(model), "--params", str(tmp_path / "p.json"),
+                  "--save", str(rrd)])
+    assert_one_error_line(result, r"^error: --params .*p\.json: differs from the patch parameters .*m\.json was "
+                                  r"fitted with \(.*n1.*\); drop --params .* or fit a model with these parameters$")
+    assert not rrd.exists() and result.stdout == ""

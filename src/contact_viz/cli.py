@@ -572,9 +572,12 @@ def depth(
     workers: Annotated[int, typer.Option(min=1, help="Frames computed in parallel.")] = 2,
 ) -> None:
     """Precompute the depth of a session that has no depth/ or disparity/ (SGBM, cached outside it)."""
+    from contact_viz.console import check_output_dir
     from contact_viz.errors import SessionError
     from contact_viz.pipeline.depth import run_depth_command
 
+    if output is not None:
+        check_output_dir(output, "-o/--output")
     with _progress() as progress:
         task = progress.add_task(f"depth {session_dir.name}", total=None)
         try:

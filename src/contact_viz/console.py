@@ -142,6 +142,22 @@ def _inside(path: Path, directory: Path) -> bool:
         return False
 
 
+def check_output_dir(path: Path, option: str) -> Path:
+    """Check now that the new folder ``path`` given by ``option`` can be made: not a file, and its
+    parent (made if needed) accepts a new entry. Raises OutputError naming the path and option."""
+    path = Path(path).expanduser()
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{path}: {option}: is a file; expected a new or empty directory")
+    parent = path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryDirectory(dir=parent, prefix=f".{path.name}.", suffix=".probe").cleanup()
+    except OSError as exc:
+        raise OutputError(f"{path}: {option}: cannot make a directory here ({exc.strerror or exc}); expected a "
+                          "path in a writable directory") from None
+    return path
+
+
 _CONNECT_URL = re.compile(r"^rerun(\+https?)?://(?P<host>[A-Za-z0-9.\-]+|\[[0-9a-fA-F:]+\]):(?P<port>\d{1,5})(/proxy)?/?$")
 
 
