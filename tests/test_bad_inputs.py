@@ -379,11 +379,15 @@ def test_fortran_and_truncated_depth_agree_between_extract_and_view(session, tmp
 def test_view_warnings_look_like_extract_warnings(session, tmp_path):
     """The debugger's skipped frames: the same one-line warning and summary as extract, no raw
     Python warning, no OpenCV log line (subprocess: the console as the user sees it)."""
+    tool = cv2.imread(str(mask_file(session)), cv2.IMREAD_GRAYSCALE)  # palettized: decoded by PIL
+    cv2.imwrite(str(mask_file(session)), np.where(tool > 0, 255, 0).astype(np.uint8))  # 8-bit: by OpenCV
     truncate(mask_file(session))
     rrd = tmp_path / "v.rrd"
-    env = {**os.environ, "COLUMNS": "80"}
-    proc = subprocess.run([sys.executable, "-m", "contact_viz.cli", "view", str(session), "--save", str(rrd)],
-                          capture_output=True, text=True, env=env, timeout=300)
+    env = {key: value for key, value in os.environ.items() if key not in ("OPENCV_LOG_LEVEL", "RUST_LOG")}
+    command = [sys.executable, "-m", "contact_viz.cli", "view", str(session), "--save", str(rrd)]
+    loud = subprocess.run([*command, "--verbose"], capture_output=True, text=True, env=env, timeout=300)
+    assert loud.returncode == 0 and "[ WARN" in loud.stderr  # OpenCV does complain about this file
+    proc = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stderr.splitlines()
     assert [line for line in lines if line.startswith("warning:")] == [
@@ -542,3 +546,17 @@ def test_view_params_that_differ_from_the_model_say_what_to_do(session, tmp_path
     assert_one_error_line(result, r"^error: --params .*p\.json: differs from the patch parameters .*m\.json was "
                                   r"fitted with \(.*n1.*\); drop --params .* or fit a model with these parameters$")
     assert not rrd.exists() and result.stdout == ""
+
+
+def test_view_serve_on_a_busy_port_is_one_line(session):
+    with socket.socket() as busy:
+        busy.bind(("0.0.0.0", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "contact_viz.cli", "view", str(session), "--serve",
+                               "--grpc-port", str(_free_port()), "--web-port", str(port)],
+                              capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "Address already in use" in errors[0] and "--web-port" in errors[0]
+    assert "Traceback" not in proc.stderr

@@ -7,7 +7,6 @@ contact_viz.console.describe_error.
 
 from __future__ import annotations
 
-import click
 import typer
 from typer.core import TyperGroup
 
@@ -32,7 +31,7 @@ class EdgeGroup(TyperGroup):
 
         try:
             return super().invoke(ctx)
-        except (typer.Exit, typer.Abort, click.exceptions.ClickException, click.exceptions.Exit):
+        except (typer.Exit, typer.Abort, typer.TyperException):  # usage errors, exits: typer prints them
             raise
         except KeyboardInterrupt:
             typer.secho("interrupted", err=True)

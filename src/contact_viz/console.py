@@ -92,6 +92,8 @@ def describe_error(exc: BaseException) -> str | None:
         return text.splitlines()[0] if text else type(exc).__name__
     if isinstance(exc, RuntimeError):
         text = str(exc)
+        if "address already in use" in text.lower():
+            return f"{text.splitlines()[0]}; expected free ports: choose others with --grpc-port / --web-port"
         if re.search(r"grpc|endpoint|connect|sink|viewer", text, re.IGNORECASE):
             return f"Rerun: {text.splitlines()[0]}; expected a running viewer (start one with `rerun`) or --save out.rrd"
     return None
