@@ -349,7 +349,19 @@ def test_valid_depth_forms_give_the_clean_rows(name, change, session, tmp_path, 
 
 
 def test_uint16_depth_png_and_disparity_are_accepted(session, tmp_path):
-    """The other stored forms: uint16 mm PNGs, and disparity/ instead of depth/."""
+    """The other stored forms: disparity/ instead of depth/, and uint16 mm PNGs."""
+    fx, baseline_m = float((session / "K.txt").read_text().split()[0]), 0.005
+    (session / "disparity").mkdir()
+    with np.errstate(divide="ignore"):  # depth 0 (invalid) -> disparity inf (invalid)
+        all_depth(session, lambda p: np.save(session / "disparity" / p.name, fx * baseline_m / np.load(p)))
+    depth = tmp_path / "depth"
+    (session / "depth").rename(depth)
+    result = cli(["extract", str(session), "-o", str(tmp_path / "disparity.csv"), "--processes", "1"])
+    assert result.exit_code == 0 and "warning" not in result.stderr, result.output
+    assert "depth from disparity/" in result.stderr
+    assert all(r["distance_m"] for r in read_rows(tmp_path / "disparity.csv"))
+    shutil.rmtree(session / "disparity")
+    depth.rename(session / "depth")
     all_depth(session, lambda p: (cv2.imwrite(str(p.with_suffix(".png")),
                                               np.round(np.nan_to_num(np.load(p)) * 1000).astype(np.uint16)),
                                   p.unlink()))
