@@ -460,7 +460,7 @@ SLIPS = {
     "predict -o a directory": (lambda s, t: ["predict", str(t / "m.json"), str(s), "-o", str(t)],
                                r"-o/--output: is a directory; expected a file name, e.g. .*predictions\.csv"),
     "view --model a directory": (lambda s, t: ["view", str(s), "--model", str(t), "--save", str(t / "v.rrd")],
-                                 r"is a directory"),
+                                 r"(?i:is a directory)"),
     "predict no model": (lambda s, t: ["predict", str(t / "m.json"), str(s), "-o", str(t / "p.csv")], r"m\.json"),
     "evaluate --json a directory": (lambda s, t: ["evaluate", str(t / "m.json"), str(s), "--json", str(t)],
                                     r"--json: is a directory"),

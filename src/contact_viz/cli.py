@@ -181,7 +181,7 @@ def extract(
     bad = sum(1 for r in rows if r["reason"] == "bad_frame")
     if bad == len(rows):
         _fail(f"{session.root}: no frame could be read ({report.summary()}); nothing written")
-    write_features(rows, output, run_config(session, params, label_params))
+    write_features(rows, output, run_config(session, patch_params=params, label_params=label_params))
     found = sum(1 for r in rows if r["distance_m"] != "")
     typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {bad} unreadable")
 
@@ -226,7 +226,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     from contact_viz.pipeline.allocator import keep_freed_memory
     from contact_viz.errors import SessionError
     from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
-    from contact_viz.model.model_file import params_mismatch
+    from contact_viz.model.model_file import check_params
     from contact_viz.io.session import open_session
     from contact_viz.pipeline.workers import DEFAULT_PROCESSES
 
@@ -239,10 +239,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
                       f"found a {source.suffix or 'plain'} file")
             if source.is_file():
                 file_params, name = read_features_config(source)
-                diff = params_mismatch(params, file_params)
-                if diff:
-                    _fail(f"{source}: features were computed with other patch parameters than the model's "
-                          f"({'; '.join(diff)}); re-extract them with the model's parameters")
+                check_params(params, file_params, str(source))
                 rows = read_features(source)
             else:
                 session = open_session(source, object_id=object_id, label_params=label_params,
@@ -360,16 +357,11 @@ def evaluate(
 
 
 def _write_evaluation(per_frame, json_out, scores, table, model, model_path) -> None:
-    import csv
-
-    from contact_viz.io.atomic import atomic_write
     from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows
+    from contact_viz.paper.tables import write_per_frame
 
     if per_frame is not None:
-        with atomic_write(per_frame, newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=PER_FRAME_COLUMNS)
-            writer.writeheader()
-            writer.writerows(per_frame_rows(scores))
+        write_per_frame(per_frame, PER_FRAME_COLUMNS, per_frame_rows(scores))
     if json_out is not None:
         from contact_viz import __version__
         from contact_viz.io.jsonfile import write_json
@@ -389,21 +381,15 @@ def predict(
     cache_dir: CacheDir = None,
 ) -> None:
     """Contact posteriors for a session, with or without labels."""
-    import csv
-
-    from contact_viz.io.atomic import atomic_write
-    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
-
     from contact_viz.console import check_output_file
+    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
+    from contact_viz.paper.tables import write_per_frame
 
     check_output_file(output, "-o/--output", example="predictions.csv")
     model, (features,) = _model_and_features(model_path, [session_dir], object_id, cache_dir)
     scores = score_session(model.predict_proba, model.threshold, features.name, features.frames,
                            features.signal, features.labels)
-    with atomic_write(output, newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=PER_FRAME_COLUMNS)
-        writer.writeheader()
-        writer.writerows(per_frame_rows([scores]))
+    write_per_frame(output, PER_FRAME_COLUMNS, per_frame_rows([scores]))
     typer.echo(f"{output}: {len(scores.frames)} frames, {int(scores.predicted.sum())} predicted contact "
                f"(threshold {model.threshold:.4f})")
 
@@ -457,10 +443,13 @@ def view(
     model = None
     try:
         if model_path is not None:
-            from contact_viz.model.model_file import load_model, params_mismatch
+            from contact_viz.model.model_file import load_model
+            from contact_viz.params import to_dict
 
             model = load_model(model_path)
-            diff = params_mismatch(model.patch_params, params) if params_file is not None else []
+            fitted, given = to_dict(model.patch_params), to_dict(params)
+            diff = [f"{k}: model {fitted[k]!r}, --params {given[k]!r}" for k in fitted
+                    if params_file is not None and fitted[k] != given[k]]
             if diff:
                 _fail(f"--params {params_file}: differs from the patch parameters {model_path} was fitted with "
                       f"({'; '.join(diff)}); drop --params (view then uses the model's) or fit a model with "
