@@ -314,9 +314,10 @@ def session_training_problem(names: Sequence[str], labels: Sequence[np.ndarray],
     for k, name in enumerate(names):
         others = [i for i in range(len(names)) if i != k]
         total = [sum(per[i][j] for i in others) for j in range(4)]
-        lacks = [what for what, n in zip(("a contact episode that starts (no contact -> contact)",
-                                          "a contact episode that ends (contact -> no contact)",
-                                          "a no-contact frame with a patch", "a contact frame with a patch"), total)
+        lacks = [what for what, n in zip(("contact episode that starts (no contact -> contact)",
+                                          "contact episode that ends (contact -> no contact)",
+                                          "frame without contact that has a patch",
+                                          "frame in contact that has a patch"), total)
                  if n == 0]
         if lacks:
             short = [f"{names[i]} ({per[i][4]} frames, {per[i][1]} ending episode{'s' * (per[i][1] != 1)})"
