@@ -67,24 +67,28 @@ def check_distinct_names(features: Sequence[Features]) -> None:
 def load_features(sources: Sequence[Path], params: PatchParams, label_params: LabelParams = LabelParams(), *,
                   object_id: int | None = None, cache_dir: str | Path | None = None, processes: int = 1,
                   on_open: Callable[[Session], Callable[[int], None] | None] | None = None,
-                  on_done: Callable[[Session, Features], None] | None = None) -> list[Features]:
+                  on_done: Callable[[Path, Features], None] | None = None) -> list[Features]:
     """Features of every source, each a session directory (opened with ``object_id`` and
     ``label_params``, extracted with ``params`` or read from the cache) or a features CSV with the
     same patch parameters. ``on_open(session)`` is called when a session is opened and may return a
-    ``progress(frames done)`` callback; ``on_done(session, features)`` when its features are ready.
+    ``progress(frames done)`` callback; ``on_done(source, features)`` when a source's features are
+    ready.
     Raises SessionError or ValueError naming the source, also when two sessions share a name."""
     out = []
     for source in sources:
         source = Path(source)
+        if source.is_file() and source.suffix.lower() != ".csv":
+            raise ValueError(f"{source}: expected a session directory or a features CSV from "
+                             f"`contact-viz extract`, found a {source.suffix or 'plain'} file")
         if source.is_file():
-            out.append(csv_features(source, params))
-            continue
-        session = open_session(source, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
-        progress = on_open(session) if on_open is not None else None
-        features = session_features(session, params, label_params, cache_dir=cache_dir, progress=progress,
-                                    processes=processes)
+            features = csv_features(source, params)
+        else:
+            session = open_session(source, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+            progress = on_open(session) if on_open is not None else None
+            features = session_features(session, params, label_params, cache_dir=cache_dir, progress=progress,
+                                        processes=processes)
         if on_done is not None:
-            on_done(session, features)
+            on_done(source, features)
         out.append(features)
     check_distinct_names(out)
     return out
