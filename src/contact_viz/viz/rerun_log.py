@@ -8,16 +8,18 @@ Entity tree (the README lists it too)::
 
     world                          ViewCoordinates RDF, AnnotationContext of the layer classes (static)
     world/camera/left              Pinhole from K.txt (static)
-    world/camera/left/image        left image: EncodedImage (JPEG) or Image (--raw-images)
+    world/camera/left/image        left image: VideoStream (AV1/H.264, --images video), EncodedImage (JPEG) or Image (raw)
     world/camera/left/layers       SegmentationImage of the layer classes (full resolution)
     world/camera/left/patch        Boxes2D: the N2 window of the selected patch, labelled with its distance
     world/camera/right             Transform3D (baseline along +x) + Pinhole (static)
     world/camera/right/image       right image
     world/camera/depth             Pinhole of the decimated depth grid (K / depth step, static)
-    world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m)
+    world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m); in 3D: its back-projection
     world/camera/depth/layers      SegmentationImage of the layer classes on the depth grid
     world/camera/depth/patch       Boxes2D: the patch window on the depth grid
-    world/cloud/near, world/cloud/far   Points3D: RGB cloud, full density near the patch / voxel-merged elsewhere
+    world/cloud/near               Points3D: RGB cloud around the patch (every 2nd pixel)
+    world/cloud/far                Points3D: RGB cloud elsewhere, voxel-merged (off by default: the depth image's
+                                   back-projection shows the surface in 3D)
     world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
     world/patch/tool               Points3D: interior pixels whose depths gave the tool depth
     world/patch/gap                Arrows3D: tool depth -> tissue along the patch centre's ray
@@ -108,6 +110,8 @@ __all__ = [
     "log_frame",
     "log_model_hint",
     "log_static",
+    "log_video_codec",
+    "log_video_samples",
     "send_known_series",
     "set_frame_time",
 ]
@@ -213,6 +217,8 @@ class FrameView:
     predicted: bool | None  # posterior >= threshold (None = no model)
     diagnostics: Sequence[Diagnostic] = ()  # checks that fired at this frame
     has_right: bool = False  # the session has a right image here (if right_* are None it is cleared)
+    left_in_video: bool = False  # the left image goes to its video stream (log_video_samples), not logged here
+    right_in_video: bool = False  # the right image goes to its video stream
     notes: Sequence[str] = ()  # other warnings of this frame (e.g. an unreadable right image)
 
 
@@ -307,9 +313,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
     Left column, top: the left image with the layer overlay and the patch box (large; its title
     names the layer colours), and beside it the right image over the depth image with the same
     overlay (each a quarter of the left image's area, so the three images fill their panes with
-    little letterboxing). Below: the 3D scene (RGB cloud, patch points, gap arrow, camera frustums;
-    the depth image's own back-projection is in the scene but hidden until toggled on), seen from
-    the side (EYE_*). Right column: distance, signal, force, contact (truth / posterior / threshold
+    little letterboxing). Below: the 3D scene (the depth image's own back-projection, the RGB cloud
+    around the patch, patch points, gap arrow, camera frustums), seen from the side (EYE_*). Right column: distance, signal, force, contact (truth / posterior / threshold
     / prediction) and diagnostics, all on the global ``frame`` axis, the text log in a tab beside
     the diagnostics. Single-series plots have no legend (the view name says what and in which
     unit); the others have theirs in a corner that the approach phase mostly leaves free.
@@ -323,8 +328,6 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
         origin=ENTITY_WORLD,
         contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}", f"- {ENTITY_LEFT_PATCH}", f"- {ENTITY_DEPTH_LAYERS}",
                   f"- {ENTITY_DEPTH_PATCH}"],
-        # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
-        overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
         line_grid=rrb.LineGrid3D(visible=False),
         eye_controls=rrb.EyeControls3D(position=EYE_POSITION_M, look_target=EYE_TARGET_M, eye_up=EYE_UP),
     )
@@ -421,13 +424,38 @@ def set_frame_time(rec: rr.RecordingStream, index: int, timestamp_s: float) -> N
     rec.set_time(TIMELINE_TIME, duration=float(timestamp_s))
 
 
-def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None) -> None:
+def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None,
+               in_video: bool = False) -> None:
+    if in_video:
+        return  # its sample is logged by log_video_samples when the encoder has it
     if jpeg is not None:
         rec.log(entity, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
     elif rgb is not None:
         rec.log(entity, rr.Image(rgb, color_model="RGB"))
     else:
         rec.log(entity, rr.Clear(recursive=False))
+
+
+VIDEO_CODECS = {"av1": rr.VideoCodec.AV1, "h264": rr.VideoCodec.H264}  # VideoParams.codec -> Rerun's codec
+
+
+def log_video_codec(rec: rr.RecordingStream, entities: Sequence[str], codec: str) -> None:
+    """Say (statically) that the images of ``entities`` are video streams of ``codec`` ("av1" or "h264")."""
+    for entity in entities:
+        rec.log(entity, rr.VideoStream(codec=VIDEO_CODECS[codec]), static=True)
+
+
+def log_video_samples(rec: rr.RecordingStream, entity: str, samples: Sequence, timestamps_s: np.ndarray) -> None:
+    """Log encoded video ``samples`` (contact_viz.viz.video.EncodedSample, tagged with their frame index) of
+    ``entity`` at their frames; ``timestamps_s`` maps a frame index to its session time (s)."""
+    if not samples:
+        return
+    index = np.array([s.tag for s in samples], dtype=np.int64)
+    times = [rr.TimeColumn(TIMELINE_FRAME, sequence=index),
+             rr.TimeColumn(TIMELINE_TIME, duration=np.asarray(timestamps_s, dtype=np.float64)[index])]
+    rec.send_columns(entity, indexes=times,
+                     columns=rr.VideoStream.columns(sample=[s.data for s in samples],
+                                                    is_keyframe=[s.is_keyframe for s in samples]))
 
 
 def _box(window: tuple[float, float, float, float], label: str) -> rr.Boxes2D:
@@ -464,19 +492,21 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
         raise ValueError(f"log_frame: frame {frame.index} has no patch result (a bad frame); use log_bad_frame")
     set_frame_time(rec, frame.index, frame.timestamp_s)
 
-    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb)
+    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb, view.left_in_video)
     rec.log(ENTITY_LEFT_LAYERS, rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
     if view.has_right:
-        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb)
-    rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP))
+        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb, view.right_in_video)
+    rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP,
+                                              point_fill_ratio=1.0))  # 3D: its points touch
     rec.log(ENTITY_DEPTH_LAYERS, rr.SegmentationImage(view.depth_layers, opacity=LAYER_OVERLAY_OPACITY))
 
     if view.cloud is not None:
         cloud = view.cloud
         rec.log(ENTITY_CLOUD_NEAR, rr.Points3D(cloud.near_points_m, colors=cloud.near_colors,
                                                radii=[cloud.near_radius_m]))
-        rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
-                                              radii=[cloud.far_radius_m]))
+        if len(cloud.far_points_m):  # no far part by default: the depth image's back-projection shows the surface
+            rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
+                                                  radii=[cloud.far_radius_m]))
 
     geometry = view.geometry
     if patch.window_xyxy is not None and geometry is not None:
