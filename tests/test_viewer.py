@@ -203,6 +203,7 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
         rerun_log.ENTITY_LEFT_PATCH: "Boxes2D:half_sizes",
         rerun_log.ENTITY_DEPTH_PATCH: "Boxes2D:half_sizes",
         rerun_log.ENTITY_CLOUD_NEAR: "Points3D:positions",
+        rerun_log.ENTITY_CLOUD_FAR: "Points3D:positions",
         rerun_log.ENTITY_PATCH_TISSUE: "Points3D:positions",
         rerun_log.ENTITY_PATCH_TOOL: "Points3D:positions",
         rerun_log.ENTITY_PATCH_GAP: "Arrows3D:vectors",
@@ -215,7 +216,6 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
     }
     for entity, component in per_frame.items():
         assert rec.frames(entity, component) == frames, entity
-    assert not rec.rows[(rerun_log.ENTITY_CLOUD_FAR, "Points3D:positions")]  # no far part by default
     for entity in (rerun_log.ENTITY_LEFT_IMAGE, rerun_log.ENTITY_RIGHT_IMAGE):  # AV1 streams, said statically
         assert rec.static[(entity, "VideoStream:codec")].as_py() == [rr.VideoCodec.AV1.value]
     # the time timeline is the session's time
@@ -558,8 +558,8 @@ def test_cloud_full_density_near_the_patch_and_voxels_elsewhere():
     assert cloud.far_radius_m == pytest.approx(0.0005)
     # no patch: no near part
     assert depth_cloud(depth, K, params=params).near_points_m.shape == (0, 3)
-    # the defaults: every 2nd pixel near the patch (points twice as large, still touching), no far part
-    thin = depth_cloud(depth, K, center_xy=(50, 50))
+    # every 2nd pixel near the patch (points twice as large, still touching); stride 0: no far part
+    thin = depth_cloud(depth, K, center_xy=(50, 50), params=CloudParams(stride_px=0))
     assert thin.far_points_m.shape == (0, 3) and thin.far_colors.shape == (0, 3)
     square = backproject(depth, K, box_xyxy=(10, 10, 91, 91))[0]  # the default 40 px half-side, clipped
     np.testing.assert_array_equal(thin.near_points_m, square[(np.arange(81 * 81) // 81 % 2 == 0)

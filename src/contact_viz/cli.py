@@ -358,8 +358,8 @@ def view(
     depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 6,
     points: Annotated[bool, typer.Option("--points/--no-points", help="Log the RGB point cloud.")] = True,
     point_stride: Annotated[int, typer.Option(min=0, help="Point cloud: every n-th pixel away from the patch "
-                            "(0 = none: the depth image's back-projection shows the surface).")] = 0,
-    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 1.5,
+                            "(0 = none).")] = 16,
+    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 4.0,
     near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: the RGB points within this of the "
                               "patch centre, px.")] = 40,
     near_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel near the patch "

@@ -14,12 +14,11 @@ Entity tree (the README lists it too)::
     world/camera/right             Transform3D (baseline along +x) + Pinhole (static)
     world/camera/right/image       right image
     world/camera/depth             Pinhole of the decimated depth grid (K / depth step, static)
-    world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m); in 3D: its back-projection
+    world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m)
     world/camera/depth/layers      SegmentationImage of the layer classes on the depth grid
     world/camera/depth/patch       Boxes2D: the patch window on the depth grid
     world/cloud/near               Points3D: RGB cloud around the patch (every 2nd pixel)
-    world/cloud/far                Points3D: RGB cloud elsewhere, voxel-merged (off by default: the depth image's
-                                   back-projection shows the surface in 3D)
+    world/cloud/far                Points3D: RGB cloud elsewhere, every 16th pixel merged into 4 mm voxels
     world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
     world/patch/tool               Points3D: interior pixels whose depths gave the tool depth
     world/patch/gap                Arrows3D: tool depth -> tissue along the patch centre's ray
@@ -313,8 +312,9 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
     Left column, top: the left image with the layer overlay and the patch box (large; its title
     names the layer colours), and beside it the right image over the depth image with the same
     overlay (each a quarter of the left image's area, so the three images fill their panes with
-    little letterboxing). Below: the 3D scene (the depth image's own back-projection, the RGB cloud
-    around the patch, patch points, gap arrow, camera frustums), seen from the side (EYE_*). Right column: distance, signal, force, contact (truth / posterior / threshold
+    little letterboxing). Below: the 3D scene (RGB cloud, patch points, gap arrow, camera frustums;
+    the depth image's own back-projection is in the scene but hidden until toggled on), seen from
+    the side (EYE_*). Right column: distance, signal, force, contact (truth / posterior / threshold
     / prediction) and diagnostics, all on the global ``frame`` axis, the text log in a tab beside
     the diagnostics. Single-series plots have no legend (the view name says what and in which
     unit); the others have theirs in a corner that the approach phase mostly leaves free.
@@ -328,6 +328,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
         origin=ENTITY_WORLD,
         contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}", f"- {ENTITY_LEFT_PATCH}", f"- {ENTITY_DEPTH_LAYERS}",
                   f"- {ENTITY_DEPTH_PATCH}"],
+        # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
+        overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
         line_grid=rrb.LineGrid3D(visible=False),
         eye_controls=rrb.EyeControls3D(position=EYE_POSITION_M, look_target=EYE_TARGET_M, eye_up=EYE_UP),
     )
@@ -496,15 +498,14 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
     rec.log(ENTITY_LEFT_LAYERS, rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
     if view.has_right:
         _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb, view.right_in_video)
-    rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP,
-                                              point_fill_ratio=1.0))  # 3D: its points touch
+    rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP))
     rec.log(ENTITY_DEPTH_LAYERS, rr.SegmentationImage(view.depth_layers, opacity=LAYER_OVERLAY_OPACITY))
 
     if view.cloud is not None:
         cloud = view.cloud
         rec.log(ENTITY_CLOUD_NEAR, rr.Points3D(cloud.near_points_m, colors=cloud.near_colors,
                                                radii=[cloud.near_radius_m]))
-        if len(cloud.far_points_m):  # no far part by default: the depth image's back-projection shows the surface
+        if len(cloud.far_points_m):  # (stride_px=0: no far part)
             rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
                                                   radii=[cloud.far_radius_m]))
 
