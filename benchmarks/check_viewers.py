@@ -1,8 +1,9 @@
 """Check that a recording opens in the stock viewers: the web viewer of `contact-viz SESSION --serve` in a
 real Chromium, and the native `rerun FILE.rrd --renderer vulkan`, both on a virtual X display (Xvfb).
 
-Run by hand (it needs Debian's chromium and xvfb, installed by scripts/bootstrap.sh, and takes 2-4
-minutes; it is not part of the test suite, which must not depend on a browser's timing):
+Run by hand (it needs Debian's chromium and xvfb, `sudo apt-get install chromium xvfb`, which
+scripts/bootstrap.sh does not install, and takes 2-4 minutes; it is not part of the test suite,
+which must not depend on a browser or on software rendering's timing):
 
     .venv/bin/python benchmarks/check_viewers.py [SESSION] [--web] [--native] [--out docs/]
 
@@ -105,7 +106,7 @@ def contact_viz() -> list[str]:
 def check_web(session: Path, display: int, env: dict, out: Path, profile: Path) -> bool:
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
-        print("web: chromium is not installed (scripts/bootstrap.sh installs it)")
+        print("web: chromium is not installed (Debian: apt-get install chromium)")
         return False
     grpc_port, web_port = 19876 + display, 19090 + display
     server = subprocess.Popen(contact_viz() + [str(session), "--serve", "--grpc-port", str(grpc_port),
@@ -158,7 +159,7 @@ def main() -> None:
     args = parser.parse_args()
     both = not (args.web or args.native)
     if shutil.which("Xvfb") is None:
-        raise SystemExit("Xvfb is not installed (Debian: apt-get install xvfb; scripts/bootstrap.sh does it)")
+        raise SystemExit("Xvfb is not installed (Debian: apt-get install xvfb)")
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="contact-viz-check-") as tmp:
         workdir = Path(tmp)

@@ -357,8 +357,8 @@ def view(
     right: Annotated[bool, typer.Option("--right/--no-right", help="Log the right image.")] = True,
     depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 6,
     points: Annotated[bool, typer.Option("--points/--no-points", help="Log the RGB point cloud.")] = True,
-    point_stride: Annotated[int, typer.Option(min=0, help="Point cloud: every n-th pixel away from the patch "
-                            "(0 = none).")] = 16,
+    point_stride: Annotated[Optional[int], typer.Option(min=0, help="Point cloud: every n-th pixel away from the "
+                            "patch (0 = none) [default: image width / 120, 16 at 1080p].")] = None,
     voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 4.0,
     near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: the RGB points within this of the "
                               "patch centre, px.")] = 40,

@@ -36,6 +36,7 @@ __all__ = [
     "voxel_downsample",
 ]
 
+FAR_SAMPLES_ACROSS = 120  # CloudParams.stride_px=None: the far part samples this many columns across the image
 NEAR_POINT_RADIUS_PX = 0.6  # radius of a full-density point, in pixel footprints at its depth (touching discs)
 PATCH_POINT_RADIUS_PX = 1.2  # radius of a patch point (drawn over the cloud), in pixel footprints at its depth
 UINT16_MAX = np.iinfo(np.uint16).max
@@ -49,10 +50,11 @@ class CloudParams:
     # keep every near_stride-th pixel of the near part along rows and columns, px (1 = all). 2: a quarter of the
     # points (27 kB a frame instead of 105 at the default radius) at 0.1 mm spacing at 10 cm, 1080p
     near_stride_px: int = 2
-    # elsewhere keep every stride-th pixel along rows and columns, px (0 = no far part), then merge those points into
-    # voxels of voxel_m edge, m (0 = no merging). 16 px / 4 mm: ~1500 points, 22 kB a 1080p frame, enough to show the
-    # tissue around the tool in 3D (6 px / 1.5 mm: 11700 points, 190 kB; 12 px / 3 mm: 2700 points, 40 kB)
-    stride_px: int = 16
+    # elsewhere keep every stride-th pixel along rows and columns, px (0 = no far part; None = the image width /
+    # FAR_SAMPLES_ACROSS), then merge those points into voxels of voxel_m edge, m (0 = no merging). At 1080p the default
+    # is 16 px / 4 mm: ~1500 points, 22 kB a frame, enough to show the tissue around the tool in 3D (6 px / 1.5 mm:
+    # 11700 points, 190 kB; 12 px / 3 mm: 2700 points, 40 kB)
+    stride_px: int | None = None
     voxel_m: float = 0.004
 
     def __post_init__(self) -> None:
@@ -61,8 +63,9 @@ class CloudParams:
         if isinstance(self.near_stride_px, bool) or not isinstance(self.near_stride_px, int) \
                 or self.near_stride_px < 1:
             raise ValueError(f"CloudParams.near_stride_px must be an integer >= 1 (px), got {self.near_stride_px!r}")
-        if isinstance(self.stride_px, bool) or not isinstance(self.stride_px, int) or self.stride_px < 0:
-            raise ValueError(f"CloudParams.stride_px must be an integer >= 0 (px, 0 = no far part), "
+        if self.stride_px is not None and (isinstance(self.stride_px, bool) or not isinstance(self.stride_px, int)
+                                           or self.stride_px < 0):
+            raise ValueError(f"CloudParams.stride_px must be None or an integer >= 0 (px, 0 = no far part), "
                              f"got {self.stride_px!r}")
         if not (np.isfinite(self.voxel_m) and self.voxel_m >= 0):
             raise ValueError(f"CloudParams.voxel_m must be a finite number >= 0 (m), got {self.voxel_m!r}")
@@ -237,7 +240,7 @@ def depth_cloud(
 
     The valid pixels within ``params.near_radius_px`` (square) of ``center_xy`` (the selected
     patch; None = no near part) are kept every ``params.near_stride_px`` px; the other valid pixels
-    are taken every ``params.stride_px`` px (0 = none) and merged into ``params.voxel_m`` voxels. Colours come from ``rgb``
+    are taken every ``params.stride_px`` px (0 = none, None = width / FAR_SAMPLES_ACROSS) and merged into ``params.voxel_m`` voxels. Colours come from ``rgb``
     (full or reduced size, see :func:`sample_colors`; None = grey).
     """
     _check_depth(depth_m)
@@ -246,13 +249,13 @@ def depth_cloud(
     none = np.zeros((0, 3), np.float32), np.zeros((0, 2), np.int64)
     near_points, near_yx = (backproject(depth_m, K, stride=params.near_stride_px, box_xyxy=box) if box is not None
                             else none)
-    far_points, far_yx = (backproject(depth_m, K, stride=params.stride_px, exclude_xyxy=box) if params.stride_px
-                          else none)
+    stride = params.stride_px if params.stride_px is not None else max(1, depth_m.shape[1] // FAR_SAMPLES_ACROSS)
+    far_points, far_yx = backproject(depth_m, K, stride=stride, exclude_xyxy=box) if stride else none
     far_points, far_colors = voxel_downsample(far_points, sample_colors(rgb, far_yx, depth_m.shape), params.voxel_m)
     focal_px = float(np.sqrt(K[0, 0] * K[1, 1]))
     near_depth = float(np.median(near_points[:, 2])) if near_points.shape[0] else 0.0
     far_depth = float(np.median(far_points[:, 2])) if far_points.shape[0] else 0.0
-    far_spacing_m = max(params.voxel_m, params.stride_px * far_depth / focal_px)
+    far_spacing_m = max(params.voxel_m, stride * far_depth / focal_px)
     return Cloud(
         near_points_m=near_points,
         near_colors=sample_colors(rgb, near_yx, depth_m.shape),
