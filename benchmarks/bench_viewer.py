@@ -128,6 +128,31 @@ def middlebury_psnr(n: int = 30) -> tuple[float, float, float]:
     return float(np.median(psnrs)), float(min(psnrs)), sum(len(s.data) for s in samples) / len(samples) / 1e3
 
 
+def cost_per_image(jpeg: Path, png: Path, n: int = 20) -> dict[str, float]:
+    """CPU ms per 1080p image of each image step, one at a time (what the 2 cores must share per frame)."""
+    import cv2
+
+    from contact_viz.viz.video import VideoEncoder, VideoParams, rgb_to_i420
+
+    def cpu_ms(step, items):
+        t0 = time.process_time()
+        out = [step(item) for item in items]
+        return 1000 * (time.process_time() - t0) / len(items), out
+
+    jpegs = sorted((jpeg / "left").glob("*.jpg"))[:n]
+    pngs = sorted((png / "left").glob("*.png"))[:n]
+    costs = {}
+    costs["decode JPEG"], rgbs = cpu_ms(lambda p: cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB), jpegs)
+    costs["decode PNG"], _ = cpu_ms(lambda p: cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB), pngs)
+    costs["RGB -> I420"], frames = cpu_ms(rgb_to_i420, rgbs)
+    costs["encode JPEG q85"], _ = cpu_ms(lambda f: cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 85]), rgbs)
+    for codec in ("av1", "h264"):
+        encoder = VideoEncoder(1920, 1080, 30.0, VideoParams(codec=codec))
+        costs[f"encode {codec}"], _ = cpu_ms(lambda item: encoder.encode(item[1], item[0]), list(enumerate(frames)))
+        encoder.flush()
+    return costs
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=150, help="frames of the session (and runs on half of them)")
@@ -143,6 +168,9 @@ def main() -> None:
     jpeg, png = make_sessions(args.workdir, args.frames)
     cache = args.workdir / "cache"
     n = args.frames
+    costs = cost_per_image(jpeg, png)
+    print("CPU per 1080p image, one at a time (a frame has two): "
+          + ", ".join(f"{k} {v:.1f} ms" for k, v in costs.items()))
     for frames in (n, n // 2):
         cases = [(name, session, images) for name, session in (("JPEG", jpeg), ("PNG", png))
                  for images in args.images]

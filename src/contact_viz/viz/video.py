@@ -45,9 +45,11 @@ __all__ = [
 # codec name -> (PyAV/FFmpeg encoder, encoder options). AV1: SVT-AV1's fastest preset (M11; 12 and 13 map to it
 # in SVT-AV1 4.x) with its low-delay prediction structure (pred-struct=1: no frame reordering and no look-ahead
 # delay; 24 ms of CPU per 1080p frame against 35 ms for the default random-access structure, same size).
-# H.264: x264 ultrafast (17 ms per 1080p frame), Annex B with in-band SPS/PPS.
+# lp=1: one SVT thread per stream (each stream has its own encoder thread already; 45 MB less memory for the two
+# 1080p encoders and 6% less CPU than SVT's own threads). H.264: x264 ultrafast (17 ms per 1080p frame), Annex B with
+# in-band SPS/PPS.
 CODECS = {
-    "av1": ("libsvtav1", {"preset": "11", "svtav1-params": "pred-struct=1"}),
+    "av1": ("libsvtav1", {"preset": "11", "svtav1-params": "pred-struct=1:lp=1"}),
     "h264": ("libx264", {"preset": "ultrafast", "tune": "zerolatency", "bf": "0"}),
 }
 # default quality per codec: the AV1 default gives 44 dB median PSNR on the synthetic 1080p sessions at 4 kB a frame;
