@@ -705,3 +705,26 @@ def test_logged_video_decodes_back_to_the_synthetic_session_images(tmp_path, cod
         # at this tiny size a frame of fast motion costs a few dB; 1080p sessions: 41 dB and more on every frame
         # (benchmarks/bench_viewer.py prints it)
         assert np.median(psnrs) >= 38.0 and min(psnrs) >= 34.0, (side, psnrs)
+
+
+def test_cli_images_options(session_dir, tmp_path):
+    from typer.testing import CliRunner
+
+    from contact_viz.cli import app
+
+    runner = CliRunner()
+    bad = runner.invoke(app, ["view", str(session_dir), "--images", "gif", "--save", str(tmp_path / "x.rrd")])
+    assert bad.exit_code == 2 and "--images" in bad.output and "video, jpeg, raw" in bad.output
+    assert not (tmp_path / "x.rrd").exists()
+    bad = runner.invoke(app, ["view", str(session_dir), "--video-codec", "vp9", "--save", str(tmp_path / "x.rrd")])
+    assert bad.exit_code == 2 and "--video-codec" in bad.output
+    out = tmp_path / "h264.rrd"
+    ok = runner.invoke(app, ["view", str(session_dir), "--video-codec", "h264", "--end", "3", "--save", str(out)])
+    assert ok.exit_code == 0, ok.output
+    rec = Recording(out)
+    assert rec.static[(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:codec")].as_py() == [rr.VideoCodec.H264.value]
+    assert rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample") == [0, 1, 2]
+    out = tmp_path / "jpeg.rrd"
+    ok = runner.invoke(app, ["view", str(session_dir), "--images", "jpeg", "--end", "2", "--save", str(out)])
+    assert ok.exit_code == 0, ok.output
+    assert Recording(out).frames(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob") == [0, 1]

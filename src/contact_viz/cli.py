@@ -405,6 +405,13 @@ def view(
         if _inside(save, session.root):
             _fail(f"{save}: refusing to write inside the session directory {session.root}")
         save.parent.mkdir(parents=True, exist_ok=True)
+    from contact_viz.viz.debugger import IMAGE_MODES
+    from contact_viz.viz.video import CODECS
+
+    if images not in IMAGE_MODES:
+        _fail(f"--images: expected one of {', '.join(IMAGE_MODES)}, got {images!r}")
+    if video_codec not in CODECS:
+        _fail(f"--video-codec: expected one of {', '.join(CODECS)}, got {video_codec!r}")
     try:
         options = DebuggerOptions(
             start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, images=images,
