@@ -64,14 +64,30 @@ def run_view(session: Path, out: Path, frames: int, images: str, cache: Path) ->
     cmd = [sys.executable, "-m", "contact_viz.cli", "view", str(session), "--save", str(out), "--end", str(frames),
            "--images", images]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    out_file = tempfile.TemporaryFile(mode="w+")
+    proc = subprocess.Popen(cmd, stdout=out_file, stderr=subprocess.STDOUT, text=True, env=env)
+    # peak RSS: the child's VmHWM (high-water mark since its exec), polled; the rusage of wait4 would count the
+    # copy of this (large) process that the child was before its exec
+    peak_kb = 0
+    status_path = Path(f"/proc/{proc.pid}/status")
+    while True:
+        try:
+            match = re.search(r"VmHWM:\s+(\d+) kB", status_path.read_text())
+            peak_kb = max(peak_kb, int(match.group(1))) if match else peak_kb
+        except (OSError, ValueError):
+            pass
+        if os.waitid(os.P_PID, proc.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None:
+            break
+        time.sleep(0.05)
     _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = status
     wall = time.perf_counter() - t0
-    text = proc.stdout.read()
+    out_file.seek(0)
+    text = out_file.read()
     if status != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{text}")
     split = re.search(r"time: next frame ([\d.]+) s, images ([\d.]+) s, prepare ([\d.]+) s, log ([\d.]+) s", text)
-    return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024,
+    return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mb": peak_kb / 1024,
             "rrd_mb": out.stat().st_size / 1e6, "split": [float(v) for v in split.groups()]}
 
 
