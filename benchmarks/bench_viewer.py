@@ -91,8 +91,10 @@ def run_view(session: Path, out: Path, frames: int, images: str, cache: Path) ->
             "rrd_mb": out.stat().st_size / 1e6, "split": [float(v) for v in split.groups()]}
 
 
-def video_psnr(rrd: Path, session: Path, entity: str = "world/camera/left/image") -> list[float]:
-    """PSNR (dB) of every logged frame of ``entity``, decoded with PyAV, against the session's image."""
+def video_psnr(rrd: Path, session: Path, side: str = "left") -> list[float]:
+    """PSNR (dB) of every logged frame of the ``side`` video, decoded with PyAV, against the session's image
+    (shrunk by pixel averaging to the video's size: the right image is logged at half size)."""
+    entity = f"world/camera/{side}/image"
     import av
     import cv2
     from rerun.chunk import RrdReader
@@ -118,9 +120,14 @@ def video_psnr(rrd: Path, session: Path, entity: str = "world/camera/left/image"
         decoded += decoder.decode(av.Packet(data))
     decoded += decoder.decode(None)
     opened = open_session(session)
-    return [psnr_db(i420_to_rgb(d.to_ndarray()),
-                    cv2.cvtColor(cv2.imread(str(opened.image_path("left", f))), cv2.COLOR_BGR2RGB))
-            for (f, _), d in zip(samples, decoded)]
+    out = []
+    for (f, _), d in zip(samples, decoded):
+        rgb = i420_to_rgb(d.to_ndarray())
+        source = cv2.cvtColor(cv2.imread(str(opened.image_path(side, f))), cv2.COLOR_BGR2RGB)
+        if source.shape != rgb.shape:
+            source = cv2.resize(source, rgb.shape[1::-1], interpolation=cv2.INTER_AREA)
+        out.append(psnr_db(rgb, source))
+    return out
 
 
 def middlebury_psnr(n: int = 30) -> tuple[float, float, float]:
@@ -207,9 +214,10 @@ def main() -> None:
                   f"prepare {split[2]:.1f}, log {split[3]:.1f}")
             if images == "video" and frames == n:
                 session = jpeg if name == "JPEG" else png
-                psnrs = video_psnr(args.workdir / f"view-{name}-{images}-{frames}.rrd", session)
-                print(f"    left video PSNR vs the source images: median {np.median(psnrs):.1f} dB, "
-                      f"min {min(psnrs):.1f} dB over {len(psnrs)} frames")
+                for side in ("left", "right"):
+                    psnrs = video_psnr(args.workdir / f"view-{name}-{images}-{frames}.rrd", session, side)
+                    print(f"    {side} video PSNR vs the source images: median {np.median(psnrs):.1f} dB, "
+                          f"min {min(psnrs):.1f} dB over {len(psnrs)} frames")
     median, low, kb = middlebury_psnr()
     print(f"\nMiddlebury motorcycle (left, 1920x1080, panned 2 px/frame), default AV1: PSNR median {median:.1f} dB, "
           f"min {low:.1f} dB, {kb:.1f} kB/frame")

@@ -234,6 +234,10 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
                                rtol=1e-6)
     assert rec.static[(rerun_log.ENTITY_RIGHT_CAMERA, "Transform3D:translation")].as_py()[0] == pytest.approx(
         [BASELINE_M, 0, 0])
+    # the right image is logged at half size: its camera has half the focal length and resolution
+    K_right = np.array(rec.static[(rerun_log.ENTITY_RIGHT_CAMERA, "Pinhole:image_from_camera")].as_py()[0])
+    np.testing.assert_allclose(K_right.reshape(3, 3).T[:2], np.asarray(session.calibration.K)[:2] / 2, rtol=1e-6)
+    assert rec.static[(rerun_log.ENTITY_RIGHT_CAMERA, "Pinhole:resolution")].as_py()[0] == [W / 2, H / 2]
     for entity in (rerun_log.ENTITY_SERIES_DISTANCE, rerun_log.ENTITY_SERIES_TRUTH):
         assert (entity, "SeriesLines:colors") in rec.static
     # the resolved configuration travels with the recording
@@ -693,15 +697,19 @@ def test_logged_video_decodes_back_to_the_synthetic_session_images(tmp_path, cod
 
     root = tmp_path / "synth"
     generate_session(root, SynthParams(phantom="cup", frames=14, seed=3, width=320, height=180, fps=10))
-    options = DebuggerOptions(video=VideoParams(codec=codec, keyframe_interval_s=0.5))
+    # right_step=1: both streams at the session's size (the half-size right stream: test_right_video_at_half_size)
+    options = DebuggerOptions(video=VideoParams(codec=codec, keyframe_interval_s=0.5), right_step=1)
     session, summary, rec = run(root, tmp_path / "video.rrd", options)
     keyframes = rec.values(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:is_keyframe")
     assert sorted(f for f, v in keyframes.items() if v.as_py()[0]) == [0, 5, 10]  # every 0.5 s at 10 frames/s
+    import cv2
+
     for side, entity in (("left", rerun_log.ENTITY_LEFT_IMAGE), ("right", rerun_log.ENTITY_RIGHT_IMAGE)):
         decoded = decode_logged_video(rec, entity)
         assert sorted(decoded) == list(range(14))
-        psnrs = [psnr_db(decoded[i], np.asarray(Image.open(session.image_path(side, i)).convert("RGB")))
-                 for i in range(14)]
+        sources = [cv2.imread(str(session.image_path(side, i)))[:, :, ::-1] for i in range(14)]
+        assert decoded[0].shape == sources[0].shape
+        psnrs = [psnr_db(decoded[i], sources[i]) for i in range(14)]
         # at this tiny size a frame of fast motion costs a few dB; 1080p sessions: 41 dB and more on every frame
         # (benchmarks/bench_viewer.py prints it)
         assert np.median(psnrs) >= 38.0 and min(psnrs) >= 34.0, (side, psnrs)
@@ -728,3 +736,18 @@ def test_cli_images_options(session_dir, tmp_path):
     ok = runner.invoke(app, ["view", str(session_dir), "--images", "jpeg", "--end", "2", "--save", str(out)])
     assert ok.exit_code == 0, ok.output
     assert Recording(out).frames(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob") == [0, 1]
+
+
+def test_right_video_at_half_size(default_run, session_dir):
+    import cv2
+
+    from contact_viz.viz.video import psnr_db
+
+    session, _, rec = default_run
+    decoded = decode_logged_video(rec, rerun_log.ENTITY_RIGHT_IMAGE)
+    assert sorted(decoded) == list(range(N_FRAMES))
+    for index, rgb in decoded.items():
+        half = cv2.imread(str(session.image_path("right", index)), cv2.IMREAD_REDUCED_COLOR_2)[:, :, ::-1]
+        assert rgb.shape == half.shape == (H // 2, W // 2, 3)
+        # 160x90 px of random 2 px colour blocks is the worst case of 4:2:0 video (1080p: benchmarks/bench_viewer.py)
+        assert psnr_db(rgb, half) >= 28.0

@@ -355,6 +355,8 @@ def view(
     jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="--images jpeg: quality of re-encoded "
                             "images.")] = 85,
     right: Annotated[bool, typer.Option("--right/--no-right", help="Log the right image.")] = True,
+    right_step: Annotated[int, typer.Option(min=1, max=2, help="--images video: log the right image at 1/n of its "
+                          "size (2: half, the size its pane shows; 1: full).")] = 2,
     depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 6,
     points: Annotated[bool, typer.Option("--points/--no-points", help="Log the RGB point cloud.")] = True,
     point_stride: Annotated[Optional[int], typer.Option(min=0, help="Point cloud: every n-th pixel away from the "
@@ -416,7 +418,7 @@ def view(
         options = DebuggerOptions(
             start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, images=images,
             video=VideoParams(codec=video_codec, crf=video_crf),
-            with_right=right, depth_step=depth_step, points=points,
+            with_right=right, right_step=right_step, depth_step=depth_step, points=points,
             cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
                               voxel_m=voxel_mm / 1000),
             patch_params=params,

@@ -248,10 +248,12 @@ def log_static(
     depth_K: np.ndarray,
     with_right: bool,
     with_model: bool,
+    right_step: int = 1,
 ) -> None:
     """Log what never changes: view coordinates, layer classes, cameras and the series' styles.
 
-    ``depth_K`` is the camera matrix of the decimated depth grid (every ``depth_step``-th pixel).
+    ``depth_K`` is the camera matrix of the decimated depth grid (every ``depth_step``-th pixel);
+    the right image is logged at 1 / ``right_step`` of the left image's size (its camera says so).
     """
     rec.send_recording_name(session.name)
     rec.log(
@@ -273,7 +275,8 @@ def log_static(
         rec.log(
             ENTITY_RIGHT_CAMERA,
             rr.Transform3D(translation=[session.calibration.baseline_m, 0.0, 0.0]),
-            rr.Pinhole(image_from_camera=K, resolution=[width, height], **pinhole),
+            rr.Pinhole(image_from_camera=_scaled_K(K, right_step),
+                       resolution=[-(-width // right_step), -(-height // right_step)], **pinhole),
             static=True,
         )
     rec.log(ENTITY_SERIES_DISTANCE, _series_lines("distance_mm"), static=True)
@@ -295,6 +298,14 @@ def log_static(
                             marker_sizes=[style.width_px]),
             static=True,
         )
+
+
+def _scaled_K(K: np.ndarray, step: int) -> np.ndarray:
+    """K of the image downscaled by ``step`` (fx, fy, cx, cy / step; the sub-pixel offset of the pixel centres,
+    under half a pixel of the small image, does not show)."""
+    K = np.array(K, dtype=np.float64)
+    K[:2] /= float(step)
+    return K
 
 
 def layer_legend() -> str:
