@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contact_viz.params import PatchParams
+from contact_viz.params import PatchParams, check_fields, checked
 from contact_viz.geometry.patch import LAYER_INTERIOR, PatchResult
 
 __all__ = [
@@ -46,29 +46,20 @@ UINT16_MAX = np.iinfo(np.uint16).max
 class CloudParams:
     """Density of the viewer's point cloud."""
 
-    near_radius_px: int = 40  # the near part: the square of half-side this around the patch centre, px (0 = none)
+    # the near part: the square of half-side this around the patch centre, px (0 = none)
+    near_radius_px: int = checked(40, ge=0)
     # keep every near_stride-th pixel of the near part along rows and columns, px (1 = all). 2: a quarter of the
     # points (27 kB a frame instead of 105 at the default radius) at 0.1 mm spacing at 10 cm, 1080p
-    near_stride_px: int = 2
+    near_stride_px: int = checked(2, ge=1)
     # elsewhere keep every stride-th pixel along rows and columns, px (0 = no far part; None = the image width /
     # FAR_SAMPLES_ACROSS), then merge those points into voxels of voxel_m edge, m (0 = no merging). At 1080p the default
     # is 16 px / 4 mm: ~1500 points, 22 kB a frame, enough to show the tissue around the tool in 3D (6 px / 1.5 mm:
     # 11700 points, 190 kB; 12 px / 3 mm: 2700 points, 40 kB)
-    stride_px: int | None = None
-    voxel_m: float = 0.004
+    stride_px: int | None = checked(None, ge=0)
+    voxel_m: float = checked(0.004, ge=0)
 
     def __post_init__(self) -> None:
-        if isinstance(self.near_radius_px, bool) or not isinstance(self.near_radius_px, int) or self.near_radius_px < 0:
-            raise ValueError(f"CloudParams.near_radius_px must be an integer >= 0 (px), got {self.near_radius_px!r}")
-        if isinstance(self.near_stride_px, bool) or not isinstance(self.near_stride_px, int) \
-                or self.near_stride_px < 1:
-            raise ValueError(f"CloudParams.near_stride_px must be an integer >= 1 (px), got {self.near_stride_px!r}")
-        if self.stride_px is not None and (isinstance(self.stride_px, bool) or not isinstance(self.stride_px, int)
-                                           or self.stride_px < 0):
-            raise ValueError(f"CloudParams.stride_px must be None or an integer >= 0 (px, 0 = no far part), "
-                             f"got {self.stride_px!r}")
-        if not (np.isfinite(self.voxel_m) and self.voxel_m >= 0):
-            raise ValueError(f"CloudParams.voxel_m must be a finite number >= 0 (m), got {self.voxel_m!r}")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
@@ -150,8 +141,6 @@ def backproject(
         points_m (N, 3) float32 and yx (N, 2) int64 (row, column of each point), row-major order.
     """
     _check_depth(depth_m)
-    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
-        raise ValueError(f"stride must be a positive integer (px), got {stride!r}")
     height, width = depth_m.shape
     x0, y0, x1, y1 = (0, 0, width, height) if box_xyxy is None else _clip_box(box_xyxy, width, height)
     # first multiple of stride at or after the box start
@@ -318,8 +307,6 @@ def depth_preview(depth_m: np.ndarray, step: int, units_per_m: float) -> np.ndar
     Returns (ceil(H / step), ceil(W / step)) uint16.
     """
     _check_depth(depth_m)
-    if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
-        raise ValueError(f"step must be a positive integer (px), got {step!r}")
     scaled = depth_m[::step, ::step] * np.float32(units_per_m)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(scaled) & (scaled > 0) & (scaled <= UINT16_MAX)
