@@ -29,6 +29,8 @@ import av  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from contact_viz.params import check_fields, checked  # noqa: E402
+
 __all__ = [
     "CODECS",
     "DEFAULT_CRF",
@@ -63,23 +65,19 @@ _LIMITED_RANGE = 1  # FFmpeg's AVCOL_RANGE_MPEG: Y in 16-235, U and V in 16-240
 class VideoParams:
     """How the stereo images are video-encoded (``--images video``)."""
 
-    codec: str = "av1"  # "av1" (decoded by the stock native viewer itself) or "h264" (native viewer needs FFmpeg)
-    crf: int | None = None  # constant rate factor: lower = better and larger (AV1 0-63, H.264 0-51); None = DEFAULT_CRF
-    keyframe_interval_s: float = 1.0  # at most this much video between keyframes (seek cost), s
-    threads: int = 0  # encoder threads per stream (0 = the encoder's choice)
+    # "av1" (decoded by the stock native viewer itself) or "h264" (the native viewer needs FFmpeg for it)
+    codec: str = checked("av1", choices=CODECS)
+    # constant rate factor: lower = better and larger (AV1 0-63, H.264 0-51); None = DEFAULT_CRF of the codec
+    crf: int | None = checked(None, ge=0, le=63)
+    keyframe_interval_s: float = checked(1.0, gt=0)  # at most this much video between keyframes (seek cost), s
+    threads: int = checked(0, ge=0)  # encoder threads per stream (0 = the encoder's choice)
 
     def __post_init__(self) -> None:
-        if self.codec not in CODECS:
-            raise ValueError(f"VideoParams.codec must be one of {sorted(CODECS)}, got {self.codec!r}")
+        check_fields(self)
         if self.crf is None:
             object.__setattr__(self, "crf", DEFAULT_CRF[self.codec])
-        top = 63 if self.codec == "av1" else 51
-        if isinstance(self.crf, bool) or not isinstance(self.crf, int) or not 0 <= self.crf <= top:
-            raise ValueError(f"VideoParams.crf must be an integer in 0..{top} for {self.codec}, got {self.crf!r}")
-        if not (math.isfinite(self.keyframe_interval_s) and self.keyframe_interval_s > 0):
-            raise ValueError(f"VideoParams.keyframe_interval_s must be > 0, got {self.keyframe_interval_s!r}")
-        if isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 0:
-            raise ValueError(f"VideoParams.threads must be an integer >= 0, got {self.threads!r}")
+        if self.codec == "h264" and self.crf > 51:
+            raise ValueError(f"VideoParams.crf must be an integer in [0, 51] for h264, got {self.crf!r}")
 
 
 @dataclass(frozen=True)
