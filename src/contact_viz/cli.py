@@ -483,7 +483,62 @@ def import_(
         typer.echo(line)
 
 
-_COMMANDS = ("extract", "synth", "fit", "evaluate", "predict", "view", "depth", "import")
+@app.command()
+def batch(
+    sessions: Annotated[Path, typer.Argument(metavar="SESSIONS", help="A folder of session folders, one "
+                        "session folder, or a text file listing session folders (one per line).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Results folder: one folder per session, "
+                      "model.json, metrics.json, summary.json.")],
+    steps: Annotated[str, typer.Option(help="Comma-separated steps: depth, extract, check, view, fit, "
+                     "evaluate.")] = "depth,extract,check",
+    ray: Annotated[bool, typer.Option("--ray", help="Run the tasks on a local Ray started on the fly "
+                   "(pip install 'contact-viz[ray]').")] = False,
+    ray_address: Annotated[Optional[str], typer.Option(help="Run the tasks on an existing Ray cluster, e.g. "
+                           "auto or ray://HOST:10001 (sessions must be at the same path on every node).")] = None,
+    processes: Annotated[Optional[int], typer.Option(min=1, help="Local engine: processes [default: the number "
+                         "of cores, at most 8].")] = None,
+    chunk_frames: Annotated[int, typer.Option(min=1, help="Frames per depth/extract task.")] = 256,
+    model_path: Annotated[Optional[Path], typer.Option("--model", help="model.json for view and evaluate "
+                          "(evaluate without fit needs it).")] = None,
+    object_id: ObjectId = None,
+    contact_force: ContactForce = 2.0,
+    params_file: ParamsFile = None,
+    cache_dir: CacheDir = None,
+) -> None:
+    """Run steps over every session of a dataset, on this machine's cores or on Ray."""
+    from contact_viz.errors import SessionError
+    from contact_viz.pipeline.batch import BatchOptions, run_batch, summary_lines
+    from contact_viz.pipeline.engines import LocalEngine, RayEngine
+
+    params, label_params = _resolve_params(params_file, contact_force)
+    try:
+        options = BatchOptions(steps=tuple(s.strip() for s in steps.split(",") if s.strip()), params=params,
+                               label_params=label_params, object_id=object_id,
+                               cache_dir=None if cache_dir is None else str(cache_dir),
+                               chunk_frames=chunk_frames,
+                               model_path=None if model_path is None else str(model_path.resolve()))
+        if model_path is not None and not model_path.is_file():
+            raise ValueError(f"--model {model_path}: expected a model.json file")
+        engine = RayEngine(address=ray_address) if (ray or ray_address) else LocalEngine(processes)
+    except (ValueError, RuntimeError) as exc:
+        _fail(str(exc))
+    try:
+        with _progress() as progress:
+            task = progress.add_task("batch", total=None)
+            summary = run_batch(sessions, output, options, engine, progress=lambda done, total, step: progress.update(
+                task, completed=done, total=total, description=f"batch: {step}"))
+    except (SessionError, ValueError) as exc:
+        _fail(str(exc))
+    finally:
+        engine.close()
+    for line in summary_lines(summary):
+        typer.echo(line)
+    typer.echo(f"{output / 'summary.json'}: the dataset summary")
+    if summary.failed or any(v.startswith("failed") for v in summary.dataset.values()):
+        raise typer.Exit(code=1)
+
+
+_COMMANDS = ("extract", "synth", "fit", "evaluate", "predict", "view", "depth", "import", "batch")
 
 
 def main(argv: list[str] | None = None) -> None:
