@@ -294,7 +294,7 @@ def run_batch(
                 with atomic_write(folder / "features.csv", newline="") as handle:
                     handle.write(_features_csv(rows))
                 write_json(folder / "features.csv.json",
-                           run_config(sessions[name], options.params, options.label_params))
+                           run_config(sessions[name], patch_params=options.params, label_params=options.label_params))
                 outcome.steps[step] = "done"
             elif step == "check":
                 _count_checks(outcome, parts[0]["report"])

@@ -24,7 +24,7 @@ __all__ = ["run_dataset_steps"]
 def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: Callable[[str], None]) -> None:
     """Run ``fit`` and/or ``evaluate`` (as in ``options.steps``) on the features under ``out``."""
     from contact_viz.model.hmm import LosoEnsemble
-    from contact_viz.model.model_file import ContactModel, load_model, params_mismatch, save_model
+    from contact_viz.model.model_file import ContactModel, check_params, load_model, save_model
     from contact_viz.pipeline.extract import feature_arrays, read_features, read_features_config
 
     features = {}
@@ -33,7 +33,9 @@ def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: C
         if not path.exists():
             continue
         file_params, _ = read_features_config(path)
-        if params_mismatch(options.params, file_params):
+        try:
+            check_params(options.params, file_params, str(path))
+        except ValueError:  # features of other parameters (an older run): not this batch's
             continue
         rows = read_features(path)
         signal, labels = feature_arrays(rows)
@@ -65,9 +67,7 @@ def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: C
                 how = "each session by the LOSO model fitted without it"
             elif options.model_path is not None:
                 loaded = load_model(options.model_path)
-                diff = params_mismatch(loaded.patch_params, options.params)
-                if diff:
-                    raise ValueError(f"--model {options.model_path}: fitted with other patch parameters ({'; '.join(diff)})")
+                check_params(loaded.patch_params, options.params, f"--model {options.model_path}")
                 threshold = loaded.threshold
                 scores = [score_session(loaded.predict_proba, threshold, n, *features[n]) for n in names if n in features]
                 how = f"every session by {options.model_path}"
