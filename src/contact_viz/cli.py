@@ -459,24 +459,63 @@ def depth(
 
 @app.command("import")
 def import_(
-    kind: Annotated[str, typer.Argument(help="Source layout: dvrk or yang2024.")],
-    src: Annotated[Path, typer.Argument(help="The recorder's folder (never modified).")],
-    out_session: Annotated[Path, typer.Argument(help="New session directory to create (new or empty).")],
-    force_topic: Annotated[Optional[str], typer.Option(help="dvrk: force topic (e.g. /force_sensor/measured_cf) "
-                           "when several topic CSVs have force columns.")] = None,
+    kind: Annotated[str, typer.Argument(help="Source layout: dvrk, yang2024 or bag.")],
+    src: Annotated[Path, typer.Argument(help="The recorder's folder, or for bag a .bag file, ROS 2 bag folder or "
+                                        ".mcap file (never modified).")],
+    out_session: Annotated[Optional[Path], typer.Argument(help="New session directory to create (new or "
+                                                          "empty).")] = None,
+    force_topic: Annotated[Optional[str], typer.Option("--force-topic", "--force", help="dvrk/bag: force topic "
+                           "(e.g. /force_sensor/measured_cf); bag: 'none' for no force.")] = None,
     video: Annotated[Optional[str], typer.Option(help="dvrk: video name when frames of several videos are "
                      "present.")] = None,
     calibration: Annotated[Optional[list[Path]], typer.Option(help="Calibration file to put in the session "
                            "(K.txt, left.yaml + right.yaml, stereo.yaml ...); repeat for several.")] = None,
     copy: Annotated[bool, typer.Option(help="Copy the images instead of linking them.")] = False,
+    list_topics: Annotated[bool, typer.Option("--list", help="bag: print the topics (type, count, rate, default "
+                           "role) and stop.")] = False,
+    left: Annotated[Optional[str], typer.Option(help="bag: left image topic.")] = None,
+    right: Annotated[Optional[str], typer.Option(help="bag: right image topic ('none': no right images).")] = None,
+    left_info: Annotated[Optional[str], typer.Option(help="bag: left CameraInfo topic.")] = None,
+    right_info: Annotated[Optional[str], typer.Option(help="bag: right CameraInfo topic.")] = None,
+    pose: Annotated[Optional[str], typer.Option(help="bag: tool pose topic (PoseStamped/TransformStamped, e.g. "
+                    "/PSM1/measured_cp) for kinematics.csv; 'none' to skip.")] = None,
+    pair_tolerance_ms: Annotated[Optional[float], typer.Option(help="bag: largest left/right stamp difference of "
+                                 "a stereo pair, ms [default: a quarter of the frame period].")] = None,
+    labels: Annotated[Optional[Path], typer.Option(help="yang2024: Yang et al.'s "
+                      "MTurk_Labels_with_keypoints.csv (GT labels, crowd labels, tool-tip keypoints).")] = None,
+    dataset: Annotated[Optional[str], typer.Option(help="yang2024: the recording's name in --labels "
+                       "[default: SRC's folder name].")] = None,
 ) -> None:
-    """Convert a recorder's output (dVRK data_collection, Yang et al. 2024) into a session."""
+    """Convert a recorder's output (dVRK data_collection, Yang et al. 2024, ROS bag / MCAP) into a session."""
     from contact_viz.errors import SessionError
     from contact_viz.io.importers import run_import_command
 
+    if list_topics:
+        if kind != "bag":
+            _fail("--list only applies to bag imports")
+        from contact_viz.io.importers.bag import list_lines
+
+        try:
+            lines = list_lines(src)
+        except SessionError as exc:
+            _fail(str(exc))
+        for line in lines:
+            typer.echo(line)
+        return
+    if out_session is None:
+        _fail("OUT_SESSION: expected the new session directory (or --list for a bag)")
+    topics = {"left": left, "right": right, "left_info": left_info, "right_info": right_info, "pose": pose}
+    from contextlib import nullcontext
+
     try:
-        lines = run_import_command(kind, src, out_session, force_topic=force_topic, video=video,
-                                   calibration=calibration or (), copy=copy)
+        with _progress() if kind == "bag" else nullcontext() as progress:  # a bag streams: show messages read
+            task = progress.add_task(f"import {src.name} (messages)", total=None) if progress is not None else None
+            lines = run_import_command(
+                kind, src, out_session, force_topic=force_topic, video=video, calibration=calibration or (),
+                copy=copy, labels=labels, dataset=dataset, bag_topics=topics,
+                pair_tolerance_s=None if pair_tolerance_ms is None else pair_tolerance_ms / 1000.0,
+                progress=None if progress is None else
+                lambda done, total: progress.update(task, completed=done, total=total))
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     for line in lines:
