@@ -357,6 +357,8 @@ def view(
                               "patch centre, px.")] = 40,
     grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
+    hand_eye: Annotated[Optional[Path], typer.Option(help="4x4 camera_T_base (text or .npy, m): draw the "
+                        "kinematics.csv tool tip and its distance to the mask's tip.")] = None,
     object_id: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
@@ -379,6 +381,13 @@ def view(
                 check_params(model, params, str(params_file))
             params = model.patch_params
         session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+        if hand_eye is not None:
+            from contact_viz.io.kinematics import read_hand_eye
+
+            camera_T_base = tuple(tuple(float(v) for v in row) for row in read_hand_eye(hand_eye))
+            if session.kinematics is None:
+                raise SessionError(session.root / "kinematics.csv", "missing: --hand-eye needs the robot's pose "
+                                   "(import a bag with a pose topic)")
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
@@ -400,11 +409,12 @@ def view(
             start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, raw_images=raw_images,
             with_right=right, depth_step=depth_step, points=points,
             cloud=CloudParams(near_radius_px=near_radius_px, stride_px=point_stride, voxel_m=voxel_mm / 1000),
-            patch_params=params,
+            patch_params=params, hand_eye=camera_T_base if hand_eye is not None else None,
         )
         opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
                                 web_port=web_port, blueprint=default_blueprint(
-                                    with_right=right and session.has_right, with_model=model is not None))
+                                    with_right=right and session.has_right, with_model=model is not None,
+                                    with_kinematics=hand_eye is not None))
     except (ValueError, IndexError) as exc:
         _fail(str(exc))
     if opened.web_viewer_url:
