@@ -490,11 +490,11 @@ def import_(
     pose: Annotated[Optional[str], typer.Option(help="bag: tool pose topic (PoseStamped/TransformStamped, e.g. "
                     "/PSM1/measured_cp) for kinematics.csv; 'none' to skip.")] = None,
     pair_tolerance_ms: Annotated[Optional[float], typer.Option(help="bag: largest left/right stamp difference of "
-                                 "a stereo pair, ms [default: a quarter of the frame period].")] = None,
+                                 "a stereo pair, ms (default: a quarter of the median left frame period).")] = None,
     labels: Annotated[Optional[Path], typer.Option(help="yang2024: Yang et al.'s "
                       "MTurk_Labels_with_keypoints.csv (GT labels, crowd labels, tool-tip keypoints).")] = None,
     dataset: Annotated[Optional[str], typer.Option(help="yang2024: the recording's name in --labels "
-                       "[default: SRC's folder name].")] = None,
+                       "(default: the name of SRC's folder).")] = None,
 ) -> None:
     """Convert a recorder's output (dVRK data_collection, Yang et al. 2024, ROS bag / MCAP) into a session."""
     from contact_viz.errors import SessionError
