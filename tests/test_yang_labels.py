@@ -107,3 +107,20 @@ def test_baseline_crops_prefer_the_tool_tips_file(tmp_path):
     for i in (0, 1, 3, 5):  # no keypoint: the mask's tip, as without the file
         assert tipped.center_source[i] == plain.center_source[i] == TIP_FOUND
         np.testing.assert_array_equal(tipped.center_xy[i], plain.center_xy[i])
+
+
+def test_score_crowd_recipe_worked_example(tmp_path):
+    import subprocess
+    import sys
+
+    session = tmp_path / "C_M1_T1_4"
+    session.mkdir()
+    # truth 0 0 1 1, crowd 0 1 0 1: one each of TN, FP, FN, TP
+    (session / "labels.csv").write_text("frame,contact\n000000,0\n000045,0\n000090,1\n000135,1\n")
+    (session / "crowd_labels.csv").write_text("frame,contact\n000000,0\n000045,1\n000090,0\n000135,1\n")
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "score_crowd.py"
+    proc = subprocess.run([sys.executable, str(recipe), str(session)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    row = next(line.split() for line in proc.stdout.splitlines() if line.startswith("C_M1_T1_4"))
+    # accuracy 2/4, precision 1/2, recall 1/2, F1 1/2, AUROC (TPR + TNR) / 2 = 1/2, AP 0.5 * 0.5 + 0.5 * 0.5
+    assert row[1:] == ["0.500"] * 6
