@@ -57,6 +57,7 @@ from contact_viz.io.session import BadFrame, Session
 from contact_viz.viz.style import (
     DEPTH_COLORMAP,
     DIAGNOSTIC_STYLES,
+    KINEMATIC_STYLES,
     LAYER_OVERLAY_OPACITY,
     LAYER_STYLES,
     PATCH_COLOUR_NAME,
@@ -512,7 +513,6 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
 
 
 KINEMATIC_AXIS_M = 0.005  # drawn length of the tool frame's axes, m
-KINEMATIC_COLORS = {"tip": (255, 0, 255), "mask": (0, 255, 255), "axes": ((255, 0, 0), (0, 200, 0), (0, 80, 255))}
 
 
 def log_kinematic_tip(rec: rr.RecordingStream, tip) -> None:
@@ -523,14 +523,14 @@ def log_kinematic_tip(rec: rr.RecordingStream, tip) -> None:
             rec.log(entity, rr.Clear(recursive=False))
         error_px = error_mm = math.nan
     else:
-        rec.log(ENTITY_KINEMATIC_TIP, rr.Points3D([tip.tip_m], colors=[KINEMATIC_COLORS["tip"]], radii=[0.0008],
+        rec.log(ENTITY_KINEMATIC_TIP, rr.Points3D([tip.tip_m], colors=[KINEMATIC_STYLES["tip"]], radii=[0.0008],
                                                   labels=["kinematic tip"]))
         rec.log(ENTITY_KINEMATIC_AXES, rr.Arrows3D(origins=[tip.tip_m] * 3, vectors=tip.axes.T * KINEMATIC_AXIS_M,
-                                                   colors=list(KINEMATIC_COLORS["axes"])))
+                                                   colors=list(KINEMATIC_STYLES["axes"])))
         for entity, xy, key in ((ENTITY_LEFT_KINEMATIC_TIP, tip.tip_xy_px, "tip"),
                                 (ENTITY_LEFT_MASK_TIP, tip.mask_tip_xy_px, "mask")):
             if xy is not None and np.isfinite(xy).all():
-                rec.log(entity, rr.Points2D([xy], colors=[KINEMATIC_COLORS[key]], radii=[-4.0]))
+                rec.log(entity, rr.Points2D([xy], colors=[KINEMATIC_STYLES[key]], radii=[-4.0]))
             else:
                 rec.log(entity, rr.Clear(recursive=False))
         error_px, error_mm = tip.error_px, tip.error_mm
