@@ -259,3 +259,22 @@ def test_image_encodings():
         image_message(Msg(encoding="32FC1", height=1, width=1, step=4, is_bigendian=0, data=np.zeros(4, np.uint8)))
     with pytest.raises(MessageError, match="found 20 bytes"):
         image_message(Msg(encoding="rgb8", height=2, width=4, step=12, is_bigendian=0, data=np.zeros(20, np.uint8)))
+
+
+def test_cli_list_and_import(synth, tmp_path):
+    from typer.testing import CliRunner
+
+    from contact_viz.cli import app
+
+    bag = write_bag(synth, tmp_path / "rec.bag", "ros1")
+    runner = CliRunner()
+    listed = runner.invoke(app, ["import", "bag", str(bag), "--list"])
+    assert listed.exit_code == 0 and listed.output.splitlines() == list_lines(bag)
+    missing = runner.invoke(app, ["import", "bag", str(bag)])
+    assert missing.exit_code == 2 and "OUT_SESSION: expected the new session directory" in missing.output
+    wrong = runner.invoke(app, ["import", "dvrk", str(tmp_path), "--list"])
+    assert wrong.exit_code == 2 and "--list only applies to bag imports" in wrong.output
+    done = runner.invoke(app, ["import", "bag", str(bag), str(tmp_path / "s"), "--force", "none", "--pose", "none"])
+    assert done.exit_code == 0, done.output
+    assert f"{N_FRAMES} frames imported" in done.output and "no force topic" in done.output
+    assert not (tmp_path / "s" / "force.csv").exists() and not (tmp_path / "s" / "kinematics.csv").exists()
