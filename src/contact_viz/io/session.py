@@ -147,6 +147,8 @@ class Session:
         depth_source: "depth", "disparity" or "sgbm" (see DEPTH_SOURCES). depth_note: one line
         saying where depth comes from. depth_config: what the depth depends on, for cache keys.
         depth_cache_dir: where SGBM disparities are cached (None for other sources).
+        kinematics: kinematics.csv's pose samples (io.kinematics.Kinematics) or None.
+        tool_tips_xy: (n, 2) float64 px from tool_tips.csv, NaN where it has no row; None without it.
     """
 
     def __init__(

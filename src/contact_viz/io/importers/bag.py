@@ -88,7 +88,9 @@ def _open_reader(src: Path):
         reader = AnyReader([src])
         reader.open()
     except Exception as exc:  # rosbags raises many kinds for a damaged file; one line for all of them
-        raise SessionError(src, f"expected a readable ROS bag, could not open it ({type(exc).__name__}: {exc})") from exc
+        hint = "; a ROS 1 recording that was cut short needs `rosbag reindex` first" if src.suffix == ".bag" else ""
+        raise SessionError(src, f"expected a readable ROS bag, could not open it ({type(exc).__name__}: "
+                                f"{exc}){hint}") from exc
     try:
         yield reader
     finally:
@@ -296,9 +298,9 @@ def import_bag(
                         progress(done, total)
             finally:
                 state.close()
-            frames, force_rows, pose_rows = state.finish(src, calibration, pair_tolerance_s, notes)
+            frames, force_rows, pose_rows, tolerance_ns = state.finish(src, calibration, pair_tolerance_s, notes)
             _write_session_json(tmp / "session.json", out_path.name, "bag", src.resolve(), frames,
-                                {"topics": chosen})
+                                {"topics": chosen, "pair_tolerance_ms": tolerance_ns / 1e6})
     out_path = out_path.expanduser().resolve()
     result = ImportResult("bag", src.resolve(), out_path, len(frames), {"written": len(frames)}, force_rows,
                           notes, missing_inputs(out_path))
@@ -384,7 +386,10 @@ class _Pass:
                 handle.close()
 
     def finish(self, src: Path, calibration, pair_tolerance_s: float | None, notes: list[str]):
-        """Pair, rename, write frames.csv and the calibration; returns (frame times s, force rows, pose rows)."""
+        """Pair, rename, write frames.csv and the calibration.
+
+        Returns (frame times s, force rows, pose rows, pairing tolerance ns).
+        """
         tmp = self.tmp
         left_ns = np.asarray(self.stamps["left"], dtype=np.int64)
         right_ns = np.asarray(self.stamps["right"], dtype=np.int64)
@@ -445,4 +450,4 @@ class _Pass:
             notes.append(f"calibration from {self.chosen['left_info']} and {self.chosen['right_info']} "
                          "written as left.yaml + right.yaml")
         read_calibration(tmp, self.shape)  # fail now, with the file named, if it is wrong
-        return [int(s) / 1e9 for s in left_ns], self.force_rows, self.pose_rows
+        return [int(s) / 1e9 for s in left_ns], self.force_rows, self.pose_rows, tolerance_ns
