@@ -13,7 +13,8 @@ from contact_viz.io.calibration import read_calibration
 from contact_viz.errors import SessionError
 from contact_viz.io.kinematics import TOOL_TIPS_COLUMNS, TOOL_TIPS_FILE
 
-from contact_viz.io.importers.common import ImportResult, YANG_FORCE_COLUMNS, YANG_LABELS, _YANG_FRAME, _image_size, _place, _place_calibration, _staging, _stem_width, _write_csv, _write_session_json
+from contact_viz.io.decoders import read_image_size
+from contact_viz.io.importers.common import ImportResult, YANG_FORCE_COLUMNS, YANG_LABELS, _YANG_FRAME, _place, _place_calibration, _staging, _stem_width, _write_csv, _write_session_json
 
 # --------------------------------------------------------------------------------------------
 # Yang et al. 2024
@@ -203,7 +204,7 @@ def import_yang2024(
         if mturk is not None:
             _write_mturk_files(tmp, mturk, {n: f"{n:0{width}d}" for n in numbers}, labels, dataset, notes)
         if _place_calibration(calibration, tmp, copy):
-            read_calibration(tmp, _image_size(left[numbers[0]]))
+            read_calibration(tmp, read_image_size(left[numbers[0]]))
         _write_session_json(tmp / "session.json", out_path.name, "yang2024", src, times,
                             {} if mturk is None else {"labels": str(labels.resolve()), "dataset": dataset})
     out_path = out_path.expanduser().resolve()
