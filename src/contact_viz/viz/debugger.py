@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +31,8 @@ import numpy as np
 
 from contact_viz.viz import rerun_log
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
-from contact_viz.errors import SessionError
+from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
+from contact_viz.errors import NoPatchWarning, SessionError
 from contact_viz.pipeline.extract import iter_frame_results, run_config
 from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams, check_fields, checked, to_dict
@@ -309,6 +311,11 @@ def run_debugger(
                 t3 = time.perf_counter()
                 rerun_log.log_bad_frame(rec, frame, posterior=posterior, predicted=predicted, diagnostics=diagnostics)
             else:
+                problem = no_patch_problem(patch.reason, patch.invalid_depth_fraction)
+                if problem is not None:  # the frame was read, but its input gives nothing to measure
+                    layer = "mask" if problem == FULL_MASK else "depth"
+                    warnings.warn(no_patch_message(frame.stem, problem, session.layer_file(layer, frame.stem)),
+                                  NoPatchWarning, stacklevel=2)
                 window = patch.window_xyxy
                 view = rerun_log.FrameView(
                     left_jpeg=shown.left_jpeg,
