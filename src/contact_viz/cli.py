@@ -414,15 +414,26 @@ def view(
     start: Annotated[int, typer.Option(min=0, help="First frame index.")] = 0,
     end: Annotated[Optional[int], typer.Option(help="Stop before this frame index.")] = None,
     stride: Annotated[int, typer.Option(min=1, help="Show every n-th frame.")] = 1,
-    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="JPEG quality of re-encoded images.")] = 85,
-    raw_images: Annotated[bool, typer.Option(help="Log raw RGB instead of JPEG (large).")] = False,
+    images: Annotated[str, typer.Option(help="How the images are logged: video (AV1 stream, smallest), jpeg "
+                      "(JPEG files as they are) or raw (decoded RGB, exact, large).")] = "video",
+    video_codec: Annotated[str, typer.Option(help="--images video: av1 (the native viewer decodes it itself) or "
+                           "h264 (faster to encode; the native viewer needs FFmpeg on PATH).")] = "av1",
+    video_crf: Annotated[Optional[int], typer.Option(help="--images video: quality, lower = better and larger "
+                         "[default: 30 for AV1 (0-63), 23 for H.264 (0-51)].")] = None,
+    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="--images jpeg: quality of re-encoded "
+                            "images.")] = 85,
     right: Annotated[bool, typer.Option("--right/--no-right", help="Log the right image.")] = True,
-    depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 3,
+    right_step: Annotated[int, typer.Option(min=1, max=2, help="--images video: log the right image at 1/n of its "
+                          "size (2: half, the size its pane shows; 1: full).")] = 2,
+    depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 6,
     points: Annotated[bool, typer.Option("--points/--no-points", help="Log the RGB point cloud.")] = True,
-    point_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel away from the patch.")] = 6,
-    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 1.5,
-    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: full density within this of the "
+    point_stride: Annotated[Optional[int], typer.Option(min=0, help="Point cloud: every n-th pixel away from the "
+                            "patch (0 = none) [default: image width / 120, 16 at 1080p].")] = None,
+    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 4.0,
+    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: the RGB points within this of the "
                               "patch centre, px.")] = 40,
+    near_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel near the patch "
+                           "(1 = all).")] = 2,
     grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
     hand_eye: Annotated[Optional[Path], typer.Option(help="4x4 camera_T_base (text or .npy, m): draw the "
@@ -471,11 +482,19 @@ def view(
     from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames
     from contact_viz.geometry.pointcloud import CloudParams
     from contact_viz.viz.rerun_log import default_blueprint, open_recording
+    from contact_viz.viz.video import VideoParams
 
     try:
         select_frames(len(session), start, end, stride)  # before any sink is opened
     except ValueError as exc:
         _fail(f"--{str(exc)}")
+    from contact_viz.viz.debugger import IMAGE_MODES
+    from contact_viz.viz.video import CODECS
+
+    if images not in IMAGE_MODES:
+        _fail(f"--images: expected one of {', '.join(IMAGE_MODES)}, got {images!r}")
+    if video_codec not in CODECS:
+        _fail(f"--video-codec: expected one of {', '.join(CODECS)}, got {video_codec!r}")
     if spawn is None:
         spawn = _has_display() and save is None and not serve and connect is None
     if not (spawn or serve or connect or save):
@@ -485,9 +504,11 @@ def view(
         check_output_file(save, "--save", session_root=session.root, example="view.rrd")
     try:
         options = DebuggerOptions(
-            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, raw_images=raw_images,
-            with_right=right, depth_step=depth_step, points=points,
-            cloud=CloudParams(near_radius_px=near_radius_px, stride_px=point_stride, voxel_m=voxel_mm / 1000),
+            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, images=images,
+            video=VideoParams(codec=video_codec, crf=video_crf),
+            with_right=right, right_step=right_step, depth_step=depth_step, points=points,
+            cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
+                              voxel_m=voxel_mm / 1000),
             patch_params=params, hand_eye=camera_T_base if hand_eye is not None else None,
         )
         opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
