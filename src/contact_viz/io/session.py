@@ -15,6 +15,8 @@ The session directory format (the contract)::
       force.csv           optional: `frame` (stem) or `timestamp` (s) column, plus fx, fy, fz (N)
       frames.csv          optional: frame,timestamp (s); needed when force.csv is indexed by timestamp
       labels.csv          optional manual labels: frame,contact (0/1); they replace the force labels
+      kinematics.csv      optional robot tool pose: timestamp,x_m,y_m,z_m,qx,qy,qz,qw,frame_id (io/kinematics.py)
+      tool_tips.csv       optional tool-tip keypoints: frame,x_px,y_px (the RGB baseline's crop centres)
 
 Depth comes from one source per session, chosen in this order and logged (``Session.depth_note``):
 ``depth/``; else ``disparity/`` (depth = fx * baseline / (disparity + offset)); else OpenCV
@@ -38,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from contact_viz.io.calibration import Calibration, Rectification, StereoCalibration, read_calibration, read_only
-from contact_viz.errors import SessionError, SessionWarning
+from contact_viz.errors import SessionError, SessionFormatError, SessionWarning
 from contact_viz.io.prefetch import prefetched
 from contact_viz.params import LabelParams
 from contact_viz.io.decoders import (
@@ -64,6 +66,7 @@ from contact_viz.io.session_files import (
 )
 from contact_viz.geometry.stereo import DEPTH_METHODS, SGBMParams, disparity_to_depth
 from contact_viz.io.depth_cache import DisparityCache
+from contact_viz.io.kinematics import KINEMATICS_FILE, TOOL_TIPS_FILE, Kinematics, read_kinematics, read_tool_tips
 
 __all__ = [
     "LAYERS",
@@ -143,6 +146,8 @@ class Session:
         depth_source: "depth", "disparity" or "sgbm" (see DEPTH_SOURCES). depth_note: one line
         saying where depth comes from. depth_config: what the depth depends on, for cache keys.
         depth_cache_dir: where SGBM disparities are cached (None for other sources).
+        kinematics: kinematics.csv's pose samples (io.kinematics.Kinematics) or None.
+        tool_tips_xy: (n, 2) float64 px from tool_tips.csv, NaN where it has no row; None without it.
     """
 
     def __init__(
@@ -170,6 +175,8 @@ class Session:
         depth_note: str = "depth from depth/",
         stereo: StereoCalibration | None = None,
         sgbm_cache: DisparityCache | None = None,
+        kinematics: Kinematics | None = None,
+        tool_tips_xy: np.ndarray | None = None,
     ) -> None:
         if depth_source not in DEPTH_SOURCES:
             raise ValueError(f"depth_source must be one of {DEPTH_SOURCES}, got {depth_source!r}")
@@ -201,6 +208,8 @@ class Session:
         self._sgbm = sgbm_cache if depth_source == "sgbm" else None
         self.depth_cache_dir = self._sgbm.directory if self._sgbm is not None else None
         self.depth_config = {"source": depth_source}
+        self.kinematics = kinematics  # kinematics.csv (robot tool pose samples) or None
+        self.tool_tips_xy = tool_tips_xy  # (n, 2) px from tool_tips.csv, NaN where absent; None without the file
         if self._sgbm is not None:
             self.depth_config["sgbm"] = asdict(self._sgbm.params)
 
@@ -229,6 +238,14 @@ class Session:
             raise ValueError(f"side must be 'left' or 'right', got {side!r}")
         files = self._left_files if side == "left" else self._right_files
         return files.get(self.stems[index])
+
+    def layer_file(self, layer: str, stem: str) -> Path | None:
+        """The file frame ``stem``'s "mask" or "depth" (depth/ or disparity/) is read from; None
+        when there is none (a missing file, SGBM depth)."""
+        files = {"mask": self._mask_files, "depth": self._depth_files}.get(layer)
+        if files is None:
+            raise ValueError(f"layer must be 'mask' or 'depth', got {layer!r}")
+        return files.get(stem)
 
     def _image(self, side: str, stem: str, decoded: dict[str, np.ndarray]) -> np.ndarray:
         """Frame ``stem``'s ``side`` image, (H, W, 3) uint8 RGB, rectified if needed; memoized in ``decoded``."""
@@ -284,6 +301,37 @@ class Session:
         return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
             "cached" if cached else "computed"
         )
+
+    def check_format(self) -> None:
+        """Refuse up front a mask or depth folder whose files all hold the wrong kind of data.
+
+        The first frame's mask and depth (or disparity) file are decoded; a shape, dtype,
+        channel or bit-depth fault there (:class:`SessionFormatError`) that the last frame's
+        file shares is a session error, raised naming the first file, so that no command
+        skips every frame one by one and writes a table of bad frames. A fault of the first
+        frame alone, or one that is not about the format (missing, unreadable, truncated),
+        stays a per-frame problem: that frame is skipped with a warning. SGBM depth is not
+        decoded here (it is computed from the images, whose size is checked per frame).
+        """
+        probes = sorted({0, len(self) - 1})
+        layers = []
+        if self._mask_files:
+            layers.append(lambda stem: self._mask(stem))
+        if self.depth_source != "sgbm":
+            layers.append(lambda stem: self._depth(stem, {}))
+        for decode in layers:
+            found = []
+            for index in probes:
+                try:
+                    decode(self.stems[index])
+                except SessionFormatError as error:
+                    found.append(error)
+                except SessionError:
+                    break
+                else:
+                    break
+            if len(found) == len(probes):
+                raise found[0]
 
     def load_depth(self, index: int, with_origin: bool = False):
         """Frame ``index``'s depth (H, W) float32 m (NaN invalid), or a BadFrame.
@@ -422,11 +470,15 @@ def open_session(
     if object_id is not None and (isinstance(object_id, bool) or not isinstance(object_id, int) or object_id < 1):
         raise ValueError(f"object_id must be a positive integer (0 is background) or None, got {object_id!r}")
     root = Path(path).expanduser()
-    if not root.exists():
-        raise SessionError(root, "missing: expected a session directory (left/, masks/, depth/, K.txt)")
-    if not root.is_dir():
-        raise SessionError(root, "expected a session directory (left/, masks/, depth/, K.txt), found a file")
-    root = root.resolve()
+    expected = "a session directory (left/, masks/ and K.txt; depth/ optional, see the README)"
+    try:
+        if not root.exists():
+            raise SessionError(root, f"missing: expected {expected}")
+        if not root.is_dir():
+            raise SessionError(root, f"expected {expected}, found a file")
+        root = root.resolve(strict=True)
+    except OSError as exc:  # a symbolic link loop, a path through a file, no permission
+        raise SessionError(root, f"expected {expected}, could not open it ({exc.strerror or exc})") from None
 
     meta = _read_session_json(root / "session.json")
     left_dir = root / "left"
@@ -469,7 +521,10 @@ def open_session(
         labels[manual_index] = manual_contact
         label_source[manual_index] = "manual"
 
-    return Session(
+    kinematics = read_kinematics(root / KINEMATICS_FILE) if (root / KINEMATICS_FILE).is_file() else None
+    tool_tips_xy = read_tool_tips(root / TOOL_TIPS_FILE, stems) if (root / TOOL_TIPS_FILE).is_file() else None
+
+    session = Session(
         root=root,
         name=meta.get("name") or root.name,
         phantom=meta.get("phantom"),
@@ -492,4 +547,8 @@ def open_session(
         depth_note=note,
         stereo=stereo,
         sgbm_cache=sgbm_cache,
+        kinematics=kinematics,
+        tool_tips_xy=tool_tips_xy,
     )
+    session.check_format()
+    return session
