@@ -8,8 +8,10 @@ last layer replaced.) ``image_size`` is set to the crop size so the "same" paddi
 convolutions is computed for the real input size.
 
 Input: a ``crop_px`` (234) square RGB crop centred on the tool tip estimated from the tool mask
-(``contact_viz.geometry.tooltip``: the mask pixel farthest from where the tool enters the image). Frames
-whose mask gives no tip are cropped at the session's last known tip, or the image centre before
+(``contact_viz.geometry.tooltip``: the mask pixel farthest from where the tool enters the image), or
+on the session's ``tool_tips.csv`` keypoint where it has one (Yang et al.'s labelled keypoints,
+``contact-viz import yang2024 --labels``). Frames whose mask gives no tip are cropped at the session's
+last known tip, or the image centre before
 any tip was found (causal: only earlier frames are used). Frames whose left image cannot be read
 reuse the previous readable frame's crop (zeros before the first one) and are never trained on.
 Pixels are scaled to [0, 1] and normalised with the ImageNet mean and standard deviation.
@@ -45,7 +47,7 @@ scratch and a :class:`BaselineWarning` says so. The device is CUDA when availabl
 
 from __future__ import annotations
 
-from contact_viz.baseline.crops import IMAGE_CENTER, LAST_TIP, TIP_FOUND, SessionCrops, extract_crops
+from contact_viz.baseline.crops import IMAGE_CENTER, LAST_TIP, TIP_FILE, TIP_FOUND, SessionCrops, extract_crops
 from contact_viz.baseline.ensemble import BaselineEnsemble
 from contact_viz.baseline.loso import FoldEvent, fit_loso
 from contact_viz.baseline.net import build_model, make_augmentation, prepare_batch, raw_scores, resolve_device
@@ -56,6 +58,7 @@ __all__ = [
     "ENSEMBLE_FILE",
     "IMAGE_CENTER",
     "LAST_TIP",
+    "TIP_FILE",
     "TIP_FOUND",
     "BaselineEnsemble",
     "BaselineParams",

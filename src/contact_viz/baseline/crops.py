@@ -17,7 +17,7 @@ from contact_viz.params import to_dict as _params_to_dict
 
 
 # center_source codes of SessionCrops
-TIP_FOUND, LAST_TIP, IMAGE_CENTER = 0, 1, 2
+TIP_FOUND, LAST_TIP, IMAGE_CENTER, TIP_FILE = 0, 1, 2, 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,7 +28,7 @@ class SessionCrops:
     crops: np.ndarray  # (T, S, S, 3) uint8 RGB crops (in memory or a read-only memory map)
     labels: np.ndarray  # (T,) int8 1 = contact, 0 = no contact, -1 = unknown
     center_xy: np.ndarray  # (T, 2) float64 crop centre (x = column, y = row) in the left image, px
-    center_source: np.ndarray  # (T,) uint8 TIP_FOUND (0) / LAST_TIP (1) / IMAGE_CENTER (2)
+    center_source: np.ndarray  # (T,) uint8 TIP_FOUND (0) / LAST_TIP (1) / IMAGE_CENTER (2) / TIP_FILE (3)
     readable: np.ndarray  # (T,) bool, False where the left image could not be read (never trained on)
 
     def __post_init__(self) -> None:
@@ -104,6 +104,7 @@ def extract_crops(
     center_source = np.empty(n_frames, dtype=np.uint8)
     readable = np.ones(n_frames, dtype=bool)
     last_tip: tuple[float, float] | None = None
+    file_tips = getattr(session, "tool_tips_xy", None)  # (T, 2) px from tool_tips.csv, NaN where absent
     image_center = ((width - 1) / 2.0, (height - 1) / 2.0)
     try:
         for frame in session.iter_frames(layers=("mask", "left")):
@@ -113,8 +114,11 @@ def extract_crops(
             if left_rgb is None:  # a BadFrame: the mask or the image is unreadable; try each alone
                 tool_mask = getattr(session.load_frame(i, ("mask",)), "tool_mask", None)
                 left_rgb = getattr(session.load_frame(i, ("left",)), "left_rgb", None)
-            tip = tool_tip_xy(tool_mask, tip_params) if tool_mask is not None else None
-            if tip is not None:
+            file_tip = None if file_tips is None or not np.isfinite(file_tips[i]).all() else file_tips[i]
+            tip = tool_tip_xy(tool_mask, tip_params) if tool_mask is not None and file_tip is None else None
+            if file_tip is not None:  # the session's tool_tips.csv (e.g. Yang et al.'s keypoints) wins
+                last_tip, center_source[i] = (float(file_tip[0]), float(file_tip[1])), TIP_FILE
+            elif tip is not None:
                 last_tip, center_source[i] = tip, TIP_FOUND
             else:
                 center_source[i] = LAST_TIP if last_tip is not None else IMAGE_CENTER
