@@ -1,0 +1,87 @@
+"""Per-session checks: force-to-signal lag (cross-correlation) and frame-time problems. Pure, no I/O."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from contact_viz.checks.params import DiagnosticParams
+
+__all__ = ["ForceLag", "force_lag", "frame_time_problems"]
+
+
+@dataclass(frozen=True)
+class ForceLag:
+    """The lag at which the force magnitude best matches the distance signal."""
+
+    lag_frames: int  # force(t + lag) matches signal(t): > 0 = the force comes late, frames
+    lag_s: float  # the same in seconds (lag x median frame interval), s
+    correlation: float  # Pearson correlation at that lag, -1..1 (NaN = not measurable)
+    zero_lag_correlation: float  # Pearson correlation at lag 0, -1..1
+    fired: bool  # |lag| >= min_lag_frames and correlation >= min_lag_correlation
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    ok = np.isfinite(a) & np.isfinite(b)
+    if ok.sum() < 8:
+        return math.nan
+    a, b = a[ok] - a[ok].mean(), b[ok] - b[ok].mean()
+    denom = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
+    return float((a * b).sum()) / denom if denom > 0 else math.nan
+
+
+def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
+              params: DiagnosticParams = DiagnosticParams()) -> ForceLag | None:
+    """Cross-correlation of force contact (on/off) with signal contact (on/off) over lags within +- max_lag_s.
+
+    ``signal`` is ``-log10(max(|d|, eps))`` per frame (NaN = no patch): it rises as the tool nears the
+    tissue, like the force in contact. None when the session has no force (or too few frames).
+    """
+    force = np.asarray(force_n, dtype=np.float64)
+    signal = np.asarray(signal, dtype=np.float64)
+    times = np.asarray(timestamps_s, dtype=np.float64)
+    n = force.size
+    if n < 16 or not np.isfinite(force).any() or np.nanstd(force) == 0:
+        return None
+    dt = float(np.median(np.diff(times))) if n > 1 else math.nan
+    if not (math.isfinite(dt) and dt > 0):
+        return None
+    max_lag = max(1, min(int(round(params.max_lag_s / dt)), n // 4))
+    # Both as on/off: the force above a low level of its range (contact), the signal above a high level
+    # of its range (tool at the tissue). Raw values lag each other by the physics (the signal rises while
+    # approaching, the force only with indentation); the on/off edges of the two coincide within a frame.
+    f_lo, f_hi = np.nanpercentile(force, 20), np.nanpercentile(force, 95)
+    finite = np.isfinite(signal)
+    if finite.sum() < 8 or not f_hi > f_lo:
+        return None
+    s_lo, s_hi = np.nanpercentile(signal, 5), np.nanpercentile(signal, 95)
+    force = np.where(np.isfinite(force), (force > f_lo + params.force_level * (f_hi - f_lo)).astype(float), np.nan)
+    signal = np.where(finite, (signal > s_lo + params.signal_level * (s_hi - s_lo)).astype(float), np.nan)
+    best_lag, best = 0, -math.inf
+    correlations = {}
+    for lag in range(-max_lag, max_lag + 1):
+        if lag >= 0:
+            c = _corr(force[lag:], signal[:n - lag])
+        else:
+            c = _corr(force[:n + lag], signal[-lag:])
+        correlations[lag] = c
+        if math.isfinite(c) and (c > best + 1e-9 or (abs(c - best) <= 1e-9 and abs(lag) < abs(best_lag))):
+            best, best_lag = c, lag
+    if not math.isfinite(best):
+        return None
+    fired = abs(best_lag) >= params.min_lag_frames and best >= params.min_lag_correlation
+    return ForceLag(best_lag, best_lag * dt, best, correlations.get(0, math.nan), fired)
+
+
+def frame_time_problems(timestamps_s: np.ndarray, params: DiagnosticParams = DiagnosticParams()) -> list[int]:
+    """Indices of frames whose time is not after the previous one's, or follows a gap longer than
+    ``frame_gap_factor`` x the median frame interval."""
+    times = np.asarray(timestamps_s, dtype=np.float64)
+    if times.size < 3:
+        return []
+    step = np.diff(times)
+    median = float(np.median(step))
+    bad = (step <= 0) | ((median > 0) & (step > params.frame_gap_factor * median))
+    return [int(i) + 1 for i in np.nonzero(bad)[0]]
