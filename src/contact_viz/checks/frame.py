@@ -150,8 +150,9 @@ def measure_frame(
     off = np.zeros_like(m)
     off[max(2 - y0, 0):max(min(height - 2 - y0, m.shape[0]), 0), max(2 - x0, 0):max(min(width - 2 - x0, m.shape[1]), 0)] = True
 
-    # inside distances; the image border continues the tool (replicate) so a shaft cut by it keeps its width
-    dt_in = cv2.distanceTransform(cv2.copyMakeBorder(m8, 1, 1, 1, 1, cv2.BORDER_REPLICATE), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    # inside distances (the image border counts as background: every disc lies inside the image)
+    dt_in = cv2.distanceTransform(cv2.copyMakeBorder(m8, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0), cv2.DIST_L2,
+                                  5)[1:-1, 1:-1]
     dt_out = cv2.distanceTransform((~m).view(np.uint8), cv2.DIST_L2, 5)
     radius = float(dt_in.max())
     shaft_px = max(2.0 * radius - 1.0, 1.0)
@@ -164,6 +165,9 @@ def measure_frame(
     if disc.size:
         axis_depth = float(np.median(disc)) + diameter_m / 2  # the shaft's axis lies a radius behind its surface
         width_ratio = shaft_px * axis_depth / fx_px / diameter_m
+        gy, gx = cy + y0, cx + x0
+        if min(gy, gx, height - 1 - gy, width - 1 - gx) <= radius + 1 and width_ratio < 1:
+            width_ratio = nan  # the widest disc is cut by the image border: a tool entering or leaving
 
     # holes on the tool and in the band around it
     region = dt_out <= 2.0 * shaft_px

@@ -39,7 +39,7 @@ class DiagnosticParams:
     min_edge_support: float = 0.6  # share of the mask contour on an image edge below which it fires, 0-1
     image_edge_grey: float = 8.0  # an image edge: grey-level gradient (Sobel / 8) at least this, grey levels/px
     # ---- depth against the mask ----
-    max_inside_far_fraction: float = 0.015  # share of the mask's inner rim whose depth lies behind the tool that fires, 0-1
+    max_inside_far_fraction: float = 0.008  # share of the mask's inner rim whose depth lies behind the tool that fires, 0-1
     max_outside_tool_fraction: float = 0.3  # share of the ring just outside the mask at the tool's depth that fires, 0-1
     ring_frac_lo: float = 0.006  # that ring starts this far outside the mask, x image width (natural edge fattening lies inside)
     ring_frac_hi: float = 0.012  # ... and ends this far out, x image width

@@ -220,12 +220,12 @@ def inject_fault(src: str | Path, dst: str | Path, kind: str, frames, severity: 
         shift = int(round(severity))
         with (src / "force.csv").open(newline="") as handle:
             rows = list(csv.DictReader(handle))
-        by_frame = {row["frame"]: row for row in rows}
+        by_frame = {int(row["frame"]): row for row in rows}  # force.csv names frames by number
         out_rows = []
         for i, stem in enumerate(stems):
             j = min(max(i - shift, 0), len(stems) - 1)
-            source = by_frame[stems[j]]
-            out_rows.append({**source, "frame": stem})
+            source = by_frame[int(stems[j])]
+            out_rows.append({**source, "frame": by_frame[int(stem)]["frame"]})
         fields = list(rows[0].keys())
 
         def write(tmp: Path) -> None:
