@@ -82,6 +82,10 @@ def main() -> None:
             codes[code] = codes.get(code, 0) + n
     print(f"\nfalse alarms on the clean sessions: {false} of {total} frames ({false / total:.1%})"
           + (f"; by check: {', '.join(f'{c} {n}' for c, n in codes.items())}" if codes else ""))
+    for session, clean, _ in results:
+        if clean.fired:
+            print(f"  {Path(session).name}: " + "; ".join(f"{code} at {', '.join(f'{x}-{y}' for x, y in r)}"
+                                                         for code, r in clean.fired.items()))
     misses = [o for o in outcomes for ph in ("approach", "contact")
               if len(o.flagged[ph]) < 0.9 * len(o.injected[ph])]
     for o in misses[:20]:

@@ -50,6 +50,8 @@ class FrameEvidence:
     residual: np.ndarray  # (h, w) uint8: |left - warped right| (grey levels, clipped to 255), 0 outside the region
     contour_xy: np.ndarray  # (n, 2) float32 mask contour pixels (x, y)
     contour_on_edge: np.ndarray  # (n,) bool: on an image edge
+    region: np.ndarray  # (h, w) bool: where the residual was measured (valid depth near the tool)
+    left_grey: np.ndarray | None  # (H, W) the left image, grey (the background of the residual picture)
 
 
 @dataclass(frozen=True)
@@ -211,6 +213,7 @@ def measure_frame(
     # stereo photometric residual near the tool
     residual_ratio = residual_grey = nan
     residual_img = None
+    near = None
     if left_f is not None and right_grey is not None and baseline_m > 0:
         near = (dt_out <= max(hi if source.any() else 3.5, 3.5) * 2) & valid
         if near.any():
@@ -240,6 +243,8 @@ def measure_frame(
         res_u8 = (np.zeros(m.shape, np.uint8) if residual_img is None
                   else np.clip(residual_img, 0, 255).astype(np.uint8))
         ev = FrameEvidence((x0, y0, x1 - x0, y1 - y0), res_u8,
-                           np.stack([cxs + x0, cys + y0], axis=1).astype(np.float32), on_edge)
+                           np.stack([cxs + x0, cys + y0], axis=1).astype(np.float32), on_edge,
+                           near if residual_img is not None else np.zeros(m.shape, bool),
+                           None if left_grey is None else np.asarray(left_grey))
     return FrameMeasures(area, touches, extra_px, extra_xy, edge_support, inside_far, outside_tool, hole_fraction,
                          shaft_px, width_ratio, residual_ratio, residual_grey, digest, thumb, ev)

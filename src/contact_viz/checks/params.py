@@ -34,7 +34,7 @@ class DiagnosticParams:
     dropout_memory_frames: int = 30  # an empty mask is a dropout if a tool was seen within this many frames, frames
     exit_area_fraction: float = 0.35  # ... unless the last mask touched the border and was below this share of the typical area (the tool left), 0-1
     mask_area_jump: float = 0.5  # relative mask-area change that fires, |dA| / max(A_t, A_prev), 0-1 (not at the border)
-    min_blob_area_fraction: float = 0.02  # an extra mask blob counts from this share of the main blob's area, 0-1
+    min_blob_area_fraction: float = 0.008  # an extra mask blob counts from this share of the main blob's area, 0-1
     blob_gap_frac: float = 0.01  # ... when farther than this from the main blob (fragments nearer are the same tool), x image width
     min_edge_support: float = 0.6  # share of the mask contour on an image edge below which it fires, 0-1
     image_edge_grey: float = 8.0  # an image edge: grey-level gradient (Sobel / 8) at least this, grey levels/px

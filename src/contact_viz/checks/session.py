@@ -33,14 +33,18 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
-              params: DiagnosticParams = DiagnosticParams()) -> ForceLag | None:
+              params: DiagnosticParams = DiagnosticParams(), suspect=None) -> ForceLag | None:
     """Cross-correlation of force contact (on/off) with signal contact (on/off) over lags within +- max_lag_s.
 
     ``signal`` is ``-log10(max(|d|, eps))`` per frame (NaN = no patch): it rises as the tool nears the
-    tissue, like the force in contact. None when the session has no force (or too few frames).
+    tissue, like the force in contact. ``suspect``: frames (bool per frame) where a frame check fired;
+    their signal is left out (a mask or depth failure would look like a lag). None when the session has
+    no force (or too few frames).
     """
     force = np.asarray(force_n, dtype=np.float64)
-    signal = np.asarray(signal, dtype=np.float64)
+    signal = np.array(signal, dtype=np.float64)
+    if suspect is not None:
+        signal[np.asarray(suspect, dtype=bool)] = np.nan
     times = np.asarray(timestamps_s, dtype=np.float64)
     n = force.size
     if n < 16 or not np.isfinite(force).any() or np.nanstd(force) == 0:

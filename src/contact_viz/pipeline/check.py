@@ -158,7 +158,10 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         records = run_chunks(task, n, chunk_size=CHUNK_FRAMES, processes=processes)
     frames = fired_frames(records, params, session.image_size[1])
     signal = np.array([r.signal for r in records], dtype=np.float64)
-    lag = force_lag(session.force_n, signal, session.timestamps_s, params)
+    suspect = np.zeros(n, bool)
+    for idx, _ in frames.values():
+        suspect[idx] = True
+    lag = force_lag(session.force_n, signal, session.timestamps_s, params, suspect=suspect)
     if lag is not None and lag.fired:
         frames["force_lag"] = (list(range(n)), f"force lags the signal by {lag.lag_frames} frames "
                                                f"({lag.lag_s:+.3f} s; correlation {lag.correlation:.2f} vs "
