@@ -16,7 +16,7 @@ _FRACTIONS = (
 _POSITIVE = (
     "distance_jump_m", "tool_diameter_mm", "max_width_ratio", "max_residual_ratio", "blob_gap_frac",
     "ring_frac_lo", "ring_frac_hi", "same_depth_m", "same_depth_rel", "far_depth_m", "far_depth_rel",
-    "image_edge_grey", "pad_frac", "frame_gap_factor", "max_lag_s", "min_lag_correlation",
+    "image_edge_grey", "pad_frac", "distance_jump_rel", "frame_gap_factor", "max_lag_s", "min_lag_correlation",
 )
 
 
@@ -55,6 +55,7 @@ class DiagnosticParams:
     # ---- time ----
     image_change_grey: float = 0.5  # the image changed: mean |grey difference| of a thumbnail above this (0-1 of 255 = grey/255), fraction
     distance_jump_m: float = 0.005  # change of the patch distance between frames that fires, m ...
+    distance_jump_rel: float = 0.2  # ... plus this share of the smaller |distance| (far away it is noisy and harmless), fraction
     patch_move_frac: float = 0.02  # ... unless the patch centre moved more than this (another part of the tool), x image width
     pad_frac: float = 0.05  # margin around the tool's bounding box the frame checks look at, x image width
     # ---- session ----

@@ -165,9 +165,10 @@ class FrameChecker:
                 jump = abs(patch.distance_m - pp.distance_m)
                 moved = math.inf if patch.center_xy is None or pp.center_xy is None else math.dist(
                     patch.center_xy, pp.center_xy)
-                if moved <= p.patch_move_frac * self.width and score("distance_jump", jump, p.distance_jump_m):
+                limit = p.distance_jump_m + p.distance_jump_rel * min(abs(patch.distance_m), abs(pp.distance_m))
+                if moved <= p.patch_move_frac * self.width and score("distance_jump", jump, limit):
                     fire("distance_jump", f"{1000 * pp.distance_m:.1f} -> {1000 * patch.distance_m:.1f} mm "
-                                          f"(jump {1000 * jump:.1f} mm > {1000 * p.distance_jump_m:.1f} mm, patch "
+                                          f"(jump {1000 * jump:.1f} mm > {1000 * limit:.1f} mm, patch "
                                           f"moved {moved:.0f} px)", jump)
             self._prev_patch = patch
         self._prev = m

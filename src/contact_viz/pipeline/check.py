@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import cv2
@@ -21,6 +22,7 @@ from contact_viz.checks.frame import FrameMeasures, measure_frame
 from contact_viz.checks.params import DiagnosticParams
 from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, FrameChecker, PatchNumbers, fired_ranges
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
+from contact_viz.errors import SessionError
 from contact_viz.geometry.patch import compute_patch
 from contact_viz.io.session import BadFrame, Session, open_session
 from contact_viz.params import PatchParams
@@ -196,7 +198,8 @@ def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_wid
 
 def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
     """The per-session table `contact-viz check` prints: one line per check that fired."""
-    head = (f"{report.session}: {report.n_frames} frames, {report.flagged_frames} flagged "
+    name = report.session if Path(report.path).name == report.session else f"{report.session} ({report.path})"
+    head = (f"{name}: {report.n_frames} frames, {report.flagged_frames} flagged "
             f"({report.elapsed_s:.1f} s)")
     lines = [head]
     fired = [c for c in (*CHECKS, *SESSION_CHECKS) if report.counts.get(c)]
@@ -215,3 +218,33 @@ def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
         cause = (CHECKS.get(code) or SESSION_CHECKS[code])[1]
         lines.append(f"  {code:{width}s}  {report.counts[code]:6d}  {text:30s}  {cause}")
     return lines
+
+
+def run_check(session_dirs, *, params: DiagnosticParams | None = None, cache_dir=None, processes: int = 1,
+              json_path=None, on_report=None, on_error=None) -> tuple[list[CheckReport], list[str]]:
+    """`contact-viz check`: :func:`check_session` on each of ``session_dirs`` in turn.
+
+    ``on_report(report)`` / ``on_error(message)`` are called as each session finishes (the CLI prints
+    there). A session that cannot be opened is an error line naming it; the others go on. With
+    ``json_path`` the reports (``{"sessions": [report.to_dict(), ...], "errors": [...]}``) are written
+    there atomically at the end. Returns (reports, errors).
+    """
+    from contact_viz.io.jsonfile import write_json
+
+    reports: list[CheckReport] = []
+    errors: list[str] = []
+    for session_dir in session_dirs:
+        try:
+            report = check_session(session_dir, params=params, cache_dir=cache_dir, processes=processes)
+        except (SessionError, ValueError) as exc:
+            errors.append(str(exc))
+            if on_error is not None:
+                on_error(str(exc))
+            continue
+        reports.append(report)
+        if on_report is not None:
+            on_report(report)
+    if json_path is not None:
+        write_json(json_path, {"sessions": [r.to_dict() for r in reports], "errors": errors,
+                               "contact_viz_version": __version__})
+    return reports, errors
