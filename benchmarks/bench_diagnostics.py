@@ -1,7 +1,7 @@
 """Detection table of the diagnostics: each failure injected into synthetic sessions, and false alarms.
 
-    python benchmarks/bench_diagnostics.py                       # seeds 100-101, every phantom, 64 frames
-    python benchmarks/bench_diagnostics.py --seeds 100,101,102 --size 320x180 --frames 64
+    python benchmarks/bench_diagnostics.py                       # seeds 100-101, every phantom, 84 frames (one whole contact)
+    python benchmarks/bench_diagnostics.py --seeds 100,101,102 --size 320x180 --frames 84
 
 For every phantom and session seed it renders a clean session (`contact-viz synth`), runs
 `contact-viz check` on it (false alarms: frames on which any check fired), then injects each of
@@ -23,15 +23,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from contact_viz.synth import PHANTOMS, SynthParams, generate_session  # noqa: E402
-from contact_viz.synth.fault_study import detection_table, flagged_frames, inject_and_check  # noqa: E402
+from contact_viz.synth import PHANTOMS  # noqa: E402
+from contact_viz.synth.fault_study import (detection_table, flagged_frames, inject_and_check,  # noqa: E402
+                                           make_session_job)
 from contact_viz.synth.faults import FAULT_KINDS  # noqa: E402
 from contact_viz.pipeline.check import check_session  # noqa: E402
-
-
-def _make(args):
-    out, phantom, seed, frames, width, height = args
-    return generate_session(out, SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height))
 
 
 def _study(args):
@@ -47,7 +43,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="100,101", help="session seeds, comma-separated (not the tuning seed 0)")
     parser.add_argument("--phantoms", default=",".join(PHANTOMS))
-    parser.add_argument("--frames", type=int, default=64)
+    parser.add_argument("--frames", type=int, default=84)
     parser.add_argument("--size", default="320x180")
     parser.add_argument("--processes", type=int, default=2)
     args = parser.parse_args()
@@ -58,7 +54,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_diagnostics_") as tmp:
         jobs = [(Path(tmp) / f"{p}_{s}", p, s, args.frames, width, height) for s in seeds for p in phantoms]
         with ProcessPoolExecutor(args.processes) as pool:
-            sessions = list(pool.map(_make, jobs))
+            sessions = list(pool.map(make_session_job, jobs))
             work = Path(tmp) / "work"
             work.mkdir()
             results = list(pool.map(_study, [(s, work, job[2]) for s, job in zip(sessions, jobs)]))

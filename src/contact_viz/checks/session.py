@@ -37,7 +37,8 @@ def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
     """Cross-correlation of force contact (on/off) with signal contact (on/off) over lags within +- max_lag_s.
 
     ``signal`` is ``-log10(max(|d|, eps))`` per frame (NaN = no patch): it rises as the tool nears the
-    tissue, like the force in contact. ``suspect``: frames (bool per frame) where a frame check fired;
+    tissue, like the force in contact. Measured around complete contacts only (None without one).
+    ``suspect``: frames (bool per frame) where a frame check fired;
     their signal is left out (a mask or depth failure would look like a lag). None when the session has
     no force (or too few frames).
     """
@@ -63,6 +64,24 @@ def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
     s_lo, s_hi = np.nanpercentile(signal, 5), np.nanpercentile(signal, 95)
     force = np.where(np.isfinite(force), (force > f_lo + params.force_level * (f_hi - f_lo)).astype(float), np.nan)
     signal = np.where(finite, (signal > s_lo + params.signal_level * (s_hi - s_lo)).astype(float), np.nan)
+    # Only complete contacts (force on, then off again, inside the session) tell a lag: where a contact is
+    # cut by the session's start or end, a later level crossing of the ramping signal looks the same as a
+    # lag. Both series are kept only around the complete contacts (+- the lags searched).
+    on = np.nan_to_num(force, nan=0.0) > 0.5
+    edges = np.flatnonzero(np.diff(on.astype(np.int8)))
+    starts = [int(e) + 1 for e in edges if not on[e]]
+    ends = [int(e) + 1 for e in edges if on[e]]
+    keep = np.zeros(n, bool)
+    complete = 0
+    for a in starts:
+        later = [b for b in ends if b > a]
+        if later:
+            keep[max(a - max_lag, 0):min(later[0] + max_lag, n)] = True
+            complete += 1
+    if not complete:
+        return None
+    force[~keep] = np.nan
+    signal[~keep] = np.nan
     best_lag, best = 0, -math.inf
     correlations = {}
     for lag in range(-max_lag, max_lag + 1):

@@ -22,7 +22,7 @@ from contact_viz.checks.params import DiagnosticParams
 from contact_viz.pipeline.check import CheckReport, check_session
 from contact_viz.synth.faults import FAULT_KINDS, inject_fault
 
-__all__ = ["InjectionOutcome", "SEVERITY", "detection_table", "flagged_frames", "inject_and_check", "plan_windows",
+__all__ = ["InjectionOutcome", "inject_and_check_job", "make_session_job", "SEVERITY", "detection_table", "flagged_frames", "inject_and_check", "plan_windows",
            "read_truth_contact"]
 
 # Severity drawn per injection (see contact_viz.synth.faults), for a 320 px wide image: lengths scale with width.
@@ -191,3 +191,16 @@ def detection_table(outcomes: list[InjectionOutcome]) -> list[dict]:
         row["checks"] = ", ".join(f"{c} {n}" for c, n in sorted(checks.items(), key=lambda kv: -kv[1])[:3])
         rows.append(row)
     return rows
+
+
+def make_session_job(args) -> Path:
+    """``generate_session(out, SynthParams(phantom, frames, seed, width, height))`` from one tuple (for process pools)."""
+    from contact_viz.synth import SynthParams, generate_session
+
+    out, phantom, seed, frames, width, height = args
+    return generate_session(out, SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height))
+
+
+def inject_and_check_job(args) -> InjectionOutcome:
+    """:func:`inject_and_check` from one (session_dir, work_dir, kind, seed) tuple (for process pools)."""
+    return inject_and_check(*args)
