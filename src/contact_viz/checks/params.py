@@ -36,7 +36,7 @@ class DiagnosticParams:
     mask_area_jump: float = 0.5  # relative mask-area change that fires, |dA| / max(A_t, A_prev), 0-1 (not at the border)
     min_blob_area_fraction: float = 0.008  # an extra mask blob counts from this share of the main blob's area, 0-1
     blob_gap_frac: float = 0.01  # ... when farther than this from the main blob (fragments nearer are the same tool), x image width
-    min_edge_support: float = 0.6  # share of the mask contour on an image edge below which it fires, 0-1
+    min_edge_support: float = 0.5  # share of the mask contour on an image edge below which it fires, 0-1
     image_edge_grey: float = 8.0  # an image edge: grey-level gradient (Sobel / 8) at least this, grey levels/px
     # ---- depth against the mask ----
     max_inside_far_fraction: float = 0.008  # share of the mask's inner rim whose depth lies behind the tool that fires, 0-1
@@ -56,7 +56,7 @@ class DiagnosticParams:
     image_change_grey: float = 0.5  # the image changed: mean |grey difference| of a thumbnail above this (0-1 of 255 = grey/255), fraction
     distance_jump_m: float = 0.005  # change of the patch distance between frames that fires, m ...
     distance_jump_rel: float = 0.2  # ... plus this share of the smaller |distance| (far away it is noisy and harmless), fraction
-    patch_move_frac: float = 0.02  # ... unless the patch centre moved more than this (another part of the tool), x image width
+    patch_move_frac: float = 0.01  # ... unless the patch centre moved more than this (another part of the tool), x image width
     pad_frac: float = 0.05  # margin around the tool's bounding box the frame checks look at, x image width
     # ---- session ----
     frame_gap_factor: float = 1.8  # a frame interval longer than this x the median interval is a gap, ratio

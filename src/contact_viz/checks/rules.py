@@ -158,7 +158,8 @@ class FrameChecker:
             if changed:
                 fire("frozen_depth", "same depth bytes as the previous frame", 1.0)
         if patch is not None:
-            if patch.reason is not None and m.tool_area_px >= p.min_tool_area_px:
+            passing = m.touches_border and (typical == 0 or m.tool_area_px < p.exit_area_fraction * typical)
+            if patch.reason is not None and m.tool_area_px >= p.min_tool_area_px and not passing:
                 fire("no_patch", f"({patch.reason})", math.nan)
             pp = self._prev_patch
             if pp is not None and math.isfinite(patch.distance_m) and math.isfinite(pp.distance_m):

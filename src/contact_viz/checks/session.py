@@ -82,7 +82,6 @@ def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
         return None
     force[~keep] = np.nan
     signal[~keep] = np.nan
-    best_lag, best = 0, -math.inf
     correlations = {}
     for lag in range(-max_lag, max_lag + 1):
         if lag >= 0:
@@ -90,10 +89,13 @@ def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
         else:
             c = _corr(force[:n + lag], signal[-lag:])
         correlations[lag] = c
-        if math.isfinite(c) and (c > best + 1e-9 or (abs(c - best) <= 1e-9 and abs(lag) < abs(best_lag))):
-            best, best_lag = c, lag
-    if not math.isfinite(best):
+    finite = {lag: c for lag, c in correlations.items() if math.isfinite(c)}
+    if not finite:
         return None
+    best = max(finite.values())
+    # on/off runs of different lengths correlate equally over a plateau of lags: take its middle
+    plateau = [lag for lag, c in finite.items() if c >= best - 1e-6]
+    best_lag = int(round(float(np.median(plateau))))
     fired = abs(best_lag) >= params.min_lag_frames and best >= params.min_lag_correlation
     return ForceLag(best_lag, best_lag * dt, best, correlations.get(0, math.nan), fired)
 
