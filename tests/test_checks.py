@@ -83,10 +83,10 @@ def test_each_failure_moves_its_measure():
     assert measure_frame(mask, holes, left, right, FX, BASELINE, params).hole_fraction > 0.3
     blob = mask.copy()
     blob[10:20, 160:175] = True  # 150 px away from the tool, not at the border
-    assert measure_frame(blob, depth, left, right, FX, BASELINE, params).extra_blob_px == 150
+    assert measure_frame(blob, depth, left, right, FX, BASELINE, params).extra_blob_px == pytest.approx(150, rel=0.1)  # sampled every 2 px
     fragment = mask.copy()
     fragment[100:120, 0:10] = True  # at the border and far: another instrument
-    assert measure_frame(fragment, depth, left, right, FX, BASELINE, params).extra_blob_px == 200
+    assert measure_frame(fragment, depth, left, right, FX, BASELINE, params).extra_blob_px == pytest.approx(200, rel=0.1)
     drifted = np.roll(mask, 6, axis=0)  # mask off the tool: contour on texture, tool depth left outside it
     d = measure_frame(drifted, depth, left, right, FX, BASELINE, params)
     assert d.edge_support < 0.5 < clean.edge_support and d.outside_tool_fraction > 0.3

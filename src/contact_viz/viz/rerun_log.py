@@ -372,7 +372,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
             rrb.TimeSeriesView(name="diagnostics: score = measured / threshold (> 1 fires; markers), invalid depth",
                                origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked,
                                axis_y=rrb.ScalarAxis(range=(-0.05, diagnostics_top)),
-                               plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftBottom)),
+                               # 2 series per check: a legend would cover the plot; hover names them, `log` says why
+                               plot_legend=rrb.PlotLegend(visible=False)),
             rrb.TextLogView(name="log", origin=ENTITY_LOG),
             active_tab=0,
         ),
