@@ -60,16 +60,21 @@ def read_truth_contact(session_dir: str | Path) -> np.ndarray:
         return np.array([int(row["contact"]) for row in csv.DictReader(handle)], dtype=np.int8)
 
 
-def plan_windows(contact: np.ndarray, rng: np.random.Generator) -> dict[str, tuple[int, ...]]:
+def plan_windows(contact: np.ndarray, rng: np.random.Generator, visible: np.ndarray | None = None
+                 ) -> dict[str, tuple[int, ...]]:
     """An approach window (4-10 frames, no contact, ending >= 3 frames before the first contact) and a
-    contact window (3-8 frames inside the longest contact run), at random positions."""
+    contact window (3-8 frames inside the longest contact run), at random positions.
+
+    ``visible`` (bool per frame, default all): the tool is in view; the approach window starts at least
+    2 frames after it first is (a failure while no tool is in view is no failure)."""
     contact = np.asarray(contact, dtype=bool)
     first = int(np.argmax(contact)) if contact.any() else contact.size
+    seen = 0 if visible is None or not np.any(visible) else int(np.argmax(np.asarray(visible, dtype=bool)))
     length = int(rng.integers(4, 11))
     last_start = first - 3 - length
-    if last_start < 2:
+    if last_start < seen + 2:
         raise ValueError("session too short before its first contact for an approach window")
-    a0 = int(rng.integers(2, last_start + 1))
+    a0 = int(rng.integers(seen + 2, last_start + 1))
     runs, start = [], None
     for i, c in enumerate(np.append(contact, False)):
         if c and start is None:
@@ -117,7 +122,7 @@ def inject_and_check(session_dir: str | Path, work_dir: str | Path, kind: str, s
     """Inject ``kind`` into ``session_dir`` in an approach and a contact window, check the copy."""
     session_dir = Path(session_dir)
     rng = np.random.default_rng(seed)
-    windows = plan_windows(read_truth_contact(session_dir), rng)
+    windows = plan_windows(read_truth_contact(session_dir), rng, _tool_visible(session_dir))
     width = _image_width(session_dir)
     severity = _severity(kind, rng, width)
     dst = Path(work_dir) / f"{session_dir.name}_{kind}_{seed}"
@@ -151,6 +156,19 @@ def inject_and_check(session_dir: str | Path, work_dir: str | Path, kind: str, s
     return InjectionOutcome(kind, session_dir.name, fault.severity, windows,
                             {phase: tuple(i for i in idx if i in flagged) for phase, idx in windows.items()},
                             checks, report)
+
+
+def _tool_visible(session_dir: Path) -> np.ndarray:
+    """Per frame: the tool mask has pixels (masks/ in frame order)."""
+    from PIL import Image
+
+    masks = sorted((p for p in (session_dir / "masks").iterdir() if not p.name.startswith(".")),
+                   key=lambda p: int(p.stem))
+    out = []
+    for path in masks:
+        with Image.open(path) as image:
+            out.append(bool(np.asarray(image).any()))
+    return np.array(out, dtype=bool)
 
 
 def _image_width(session_dir: Path) -> int:
