@@ -18,6 +18,8 @@ import numpy as np
 from contact_viz.checks.frame import FrameMeasures
 from contact_viz.checks.params import DiagnosticParams
 
+ENTERING_FRAMES = 5  # a tool's first frames in view (at the border) do not raise no_patch, frames
+
 __all__ = ["CHECKS", "Diagnostic", "FrameChecker", "PatchNumbers", "SESSION_CHECKS", "fired_ranges"]
 
 # code -> (what it measures, likely cause); in the order the viewer stacks them.
@@ -158,7 +160,9 @@ class FrameChecker:
             if changed:
                 fire("frozen_depth", "same depth bytes as the previous frame", 1.0)
         if patch is not None:
-            passing = m.touches_border and (typical == 0 or m.tool_area_px < p.exit_area_fraction * typical)
+            # a small mask at the border while the tool enters (its first frames) or leaves the view
+            passing = m.touches_border and (len(self._areas) <= ENTERING_FRAMES
+                                            or m.tool_area_px < p.exit_area_fraction * typical)
             if patch.reason is not None and m.tool_area_px >= p.min_tool_area_px and not passing:
                 fire("no_patch", f"({patch.reason})", math.nan)
             pp = self._prev_patch
