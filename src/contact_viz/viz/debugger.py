@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +32,8 @@ import numpy as np
 
 from contact_viz.viz import rerun_log
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
-from contact_viz.errors import SessionError
+from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
+from contact_viz.errors import NoPatchWarning, SessionError
 from contact_viz.pipeline.check import load_grey
 from contact_viz.pipeline.extract import iter_frame_results, run_config
 from contact_viz.model.hmm import StreamingFilter
@@ -286,8 +288,8 @@ def run_debugger(
             shown = next(images)
             t2 = time.perf_counter()
             frame, patch = result.frame, result.patch
-            checked = tracker.update(result, *next(greys), evidence=True)
-            diagnostics = checked.fired
+            diag = tracker.update(result, *next(greys), evidence=True)
+            diagnostics = diag.fired
             posterior = predicted = None
             if stream is not None:
                 posterior = stream.update(math.nan if patch is None else patch.signal)
@@ -297,6 +299,11 @@ def run_debugger(
                 t3 = time.perf_counter()
                 rerun_log.log_bad_frame(rec, frame, posterior=posterior, predicted=predicted, diagnostics=diagnostics)
             else:
+                problem = no_patch_problem(patch.reason, patch.invalid_depth_fraction)
+                if problem is not None:  # the frame was read, but its input gives nothing to measure
+                    layer = "mask" if problem == FULL_MASK else "depth"
+                    warnings.warn(no_patch_message(frame.stem, problem, session.layer_file(layer, frame.stem)),
+                                  NoPatchWarning, stacklevel=2)
                 window = patch.window_xyxy
                 view = rerun_log.FrameView(
                     left_jpeg=shown.left_jpeg,
@@ -314,8 +321,8 @@ def run_debugger(
                     posterior=posterior,
                     predicted=predicted,
                     diagnostics=diagnostics,
-                    diagnostic_scores=checked.scores,
-                    evidence=checked.evidence,
+                    diagnostic_scores=diag.scores,
+                    evidence=diag.evidence,
                     notes=shown.notes,
                 )
                 t3 = time.perf_counter()
