@@ -414,17 +414,30 @@ def view(
     start: Annotated[int, typer.Option(min=0, help="First frame index.")] = 0,
     end: Annotated[Optional[int], typer.Option(help="Stop before this frame index.")] = None,
     stride: Annotated[int, typer.Option(min=1, help="Show every n-th frame.")] = 1,
-    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="JPEG quality of re-encoded images.")] = 85,
-    raw_images: Annotated[bool, typer.Option(help="Log raw RGB instead of JPEG (large).")] = False,
+    images: Annotated[str, typer.Option(help="How the images are logged: video (AV1 stream, smallest), jpeg "
+                      "(JPEG files as they are) or raw (decoded RGB, exact, large).")] = "video",
+    video_codec: Annotated[str, typer.Option(help="--images video: av1 (the native viewer decodes it itself) or "
+                           "h264 (faster to encode; the native viewer needs FFmpeg on PATH).")] = "av1",
+    video_crf: Annotated[Optional[int], typer.Option(help="--images video: quality, lower = better and larger "
+                         "[default: 30 for AV1 (0-63), 23 for H.264 (0-51)].")] = None,
+    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="--images jpeg: quality of re-encoded "
+                            "images.")] = 85,
     right: Annotated[bool, typer.Option("--right/--no-right", help="Log the right image.")] = True,
-    depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 3,
+    right_step: Annotated[int, typer.Option(min=1, max=2, help="--images video: log the right image at 1/n of its "
+                          "size (2: half, the size its pane shows; 1: full).")] = 2,
+    depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 6,
     points: Annotated[bool, typer.Option("--points/--no-points", help="Log the RGB point cloud.")] = True,
-    point_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel away from the patch.")] = 6,
-    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 1.5,
-    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: full density within this of the "
+    point_stride: Annotated[Optional[int], typer.Option(min=0, help="Point cloud: every n-th pixel away from the "
+                            "patch (0 = none) [default: image width / 120, 16 at 1080p].")] = None,
+    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 4.0,
+    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: the RGB points within this of the "
                               "patch centre, px.")] = 40,
+    near_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel near the patch "
+                           "(1 = all).")] = 2,
     grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
+    hand_eye: Annotated[Optional[Path], typer.Option(help="4x4 camera_T_base (text or .npy, m): draw the "
+                        "kinematics.csv tool tip and its distance to the mask's tip.")] = None,
     object_id: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
@@ -458,6 +471,13 @@ def view(
                       "these parameters")
             params = model.patch_params
         session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+        if hand_eye is not None:
+            from contact_viz.io.kinematics import read_hand_eye
+
+            camera_T_base = tuple(tuple(float(v) for v in row) for row in read_hand_eye(hand_eye))
+            if session.kinematics is None:
+                raise SessionError(session.root / "kinematics.csv", "missing: --hand-eye needs the robot's pose "
+                                   "(import a bag with a pose topic)")
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
@@ -465,11 +485,19 @@ def view(
     from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames
     from contact_viz.geometry.pointcloud import CloudParams
     from contact_viz.viz.rerun_log import default_blueprint, open_recording
+    from contact_viz.viz.video import VideoParams
 
     try:
         select_frames(len(session), start, end, stride)  # before any sink is opened
     except ValueError as exc:
         _fail(f"--{str(exc)}")
+    from contact_viz.viz.debugger import IMAGE_MODES
+    from contact_viz.viz.video import CODECS
+
+    if images not in IMAGE_MODES:
+        _fail(f"--images: expected one of {', '.join(IMAGE_MODES)}, got {images!r}")
+    if video_codec not in CODECS:
+        _fail(f"--video-codec: expected one of {', '.join(CODECS)}, got {video_codec!r}")
     if spawn is None:
         spawn = _has_display() and save is None and not serve and connect is None
     if not (spawn or serve or connect or save):
@@ -479,14 +507,18 @@ def view(
         check_output_file(save, "--save", session_root=session.root, example="view.rrd")
     try:
         options = DebuggerOptions(
-            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, raw_images=raw_images,
-            with_right=right, depth_step=depth_step, points=points,
-            cloud=CloudParams(near_radius_px=near_radius_px, stride_px=point_stride, voxel_m=voxel_mm / 1000),
+            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, images=images,
+            video=VideoParams(codec=video_codec, crf=video_crf),
+            with_right=right, right_step=right_step, depth_step=depth_step, points=points,
+            cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
+                              voxel_m=voxel_mm / 1000),
             patch_params=params, diagnostics=DiagnosticParams(tool_diameter_mm=tool_diameter_mm),
+            hand_eye=camera_T_base if hand_eye is not None else None,
         )
         opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
                                 web_port=web_port, blueprint=default_blueprint(
-                                    with_right=right and session.has_right, with_model=model is not None))
+                                    with_right=right and session.has_right, with_model=model is not None,
+                                    with_kinematics=hand_eye is not None))
     except (ValueError, IndexError) as exc:
         _fail(str(exc))
     if opened.web_viewer_url:
@@ -588,28 +620,125 @@ def depth(
 
 @app.command("import")
 def import_(
-    kind: Annotated[str, typer.Argument(help="Source layout: dvrk or yang2024.")],
-    src: Annotated[Path, typer.Argument(help="The recorder's folder (never modified).")],
-    out_session: Annotated[Path, typer.Argument(help="New session directory to create (new or empty).")],
-    force_topic: Annotated[Optional[str], typer.Option(help="dvrk: force topic (e.g. /force_sensor/measured_cf) "
-                           "when several topic CSVs have force columns.")] = None,
+    kind: Annotated[str, typer.Argument(help="Source layout: dvrk, yang2024 or bag.")],
+    src: Annotated[Path, typer.Argument(help="The recorder's folder, or for bag a .bag file, ROS 2 bag folder or "
+                                        ".mcap file (never modified).")],
+    out_session: Annotated[Optional[Path], typer.Argument(help="New session directory to create (new or "
+                                                          "empty).")] = None,
+    force_topic: Annotated[Optional[str], typer.Option("--force-topic", "--force", help="dvrk/bag: force topic "
+                           "(e.g. /force_sensor/measured_cf); bag: 'none' for no force.")] = None,
     video: Annotated[Optional[str], typer.Option(help="dvrk: video name when frames of several videos are "
                      "present.")] = None,
     calibration: Annotated[Optional[list[Path]], typer.Option(help="Calibration file to put in the session "
                            "(K.txt, left.yaml + right.yaml, stereo.yaml ...); repeat for several.")] = None,
     copy: Annotated[bool, typer.Option(help="Copy the images instead of linking them.")] = False,
+    list_topics: Annotated[bool, typer.Option("--list", help="bag: print the topics (type, count, rate, default "
+                           "role) and stop.")] = False,
+    left: Annotated[Optional[str], typer.Option(help="bag: left image topic.")] = None,
+    right: Annotated[Optional[str], typer.Option(help="bag: right image topic ('none': no right images).")] = None,
+    left_info: Annotated[Optional[str], typer.Option(help="bag: left CameraInfo topic.")] = None,
+    right_info: Annotated[Optional[str], typer.Option(help="bag: right CameraInfo topic.")] = None,
+    pose: Annotated[Optional[str], typer.Option(help="bag: tool pose topic (PoseStamped/TransformStamped, e.g. "
+                    "/PSM1/measured_cp) for kinematics.csv; 'none' to skip.")] = None,
+    pair_tolerance_ms: Annotated[Optional[float], typer.Option(help="bag: largest left/right stamp difference of "
+                                 "a stereo pair, ms (default: a quarter of the median left frame period).")] = None,
+    labels: Annotated[Optional[Path], typer.Option(help="yang2024: Yang et al.'s "
+                      "MTurk_Labels_with_keypoints.csv (GT labels, crowd labels, tool-tip keypoints).")] = None,
+    dataset: Annotated[Optional[str], typer.Option(help="yang2024: the recording's name in --labels "
+                       "(default: the name of SRC's folder).")] = None,
 ) -> None:
-    """Convert a recorder's output (dVRK data_collection, Yang et al. 2024) into a session."""
+    """Convert a recorder's output (dVRK data_collection, Yang et al. 2024, ROS bag / MCAP) into a session."""
     from contact_viz.errors import SessionError
     from contact_viz.io.importers import run_import_command
 
+    if list_topics:
+        if kind != "bag":
+            _fail("--list only applies to bag imports")
+        from contact_viz.io.importers.bag import list_lines
+
+        try:
+            lines = list_lines(src)
+        except SessionError as exc:
+            _fail(str(exc))
+        for line in lines:
+            typer.echo(line)
+        return
+    if out_session is None:
+        _fail("OUT_SESSION: expected the new session directory (or --list for a bag)")
+    topics = {"left": left, "right": right, "left_info": left_info, "right_info": right_info, "pose": pose}
+    from contextlib import nullcontext
+
     try:
-        lines = run_import_command(kind, src, out_session, force_topic=force_topic, video=video,
-                                   calibration=calibration or (), copy=copy)
+        with _progress() if kind == "bag" else nullcontext() as progress:  # a bag streams: show messages read
+            task = progress.add_task(f"import {src.name} (messages)", total=None) if progress is not None else None
+            lines = run_import_command(
+                kind, src, out_session, force_topic=force_topic, video=video, calibration=calibration or (),
+                copy=copy, labels=labels, dataset=dataset, bag_topics=topics,
+                pair_tolerance_s=None if pair_tolerance_ms is None else pair_tolerance_ms / 1000.0,
+                progress=None if progress is None else
+                lambda done, total: progress.update(task, completed=done, total=total))
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     for line in lines:
         typer.echo(line)
+
+
+@app.command()
+def batch(
+    sessions: Annotated[Path, typer.Argument(metavar="SESSIONS", help="A folder of session folders, one "
+                        "session folder, or a text file listing session folders (one per line).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Results folder: one folder per session, "
+                      "model.json, metrics.json, summary.json.")],
+    steps: Annotated[str, typer.Option(help="Comma-separated steps: depth, extract, check, view, fit, "
+                     "evaluate.")] = "depth,extract,check",
+    ray: Annotated[bool, typer.Option("--ray", help="Run the tasks on a local Ray started on the fly "
+                   "(pip install 'contact-viz[ray]').")] = False,
+    ray_address: Annotated[Optional[str], typer.Option(help="Run the tasks on an existing Ray cluster, e.g. "
+                           "auto or ray://HOST:10001 (sessions must be at the same path on every node).")] = None,
+    processes: Annotated[Optional[int], typer.Option(min=1, help="Local engine: processes [default: the number "
+                         "of cores, at most 8].")] = None,
+    chunk_frames: Annotated[int, typer.Option(min=1, help="Frames per depth/extract task.")] = 256,
+    model_path: Annotated[Optional[Path], typer.Option("--model", help="model.json for view and evaluate "
+                          "(evaluate without fit needs it).")] = None,
+    object_id: ObjectId = None,
+    contact_force: ContactForce = 2.0,
+    params_file: ParamsFile = None,
+    cache_dir: CacheDir = None,
+) -> None:
+    """Run steps over every session of a dataset, on this machine's cores or on Ray."""
+    from contact_viz.console import check_output_dir
+    from contact_viz.errors import SessionError
+    from contact_viz.pipeline.batch import BatchOptions, find_sessions, run_batch, summary_lines
+    from contact_viz.pipeline.engines import LocalEngine, RayEngine
+
+    params, label_params = _resolve_params(params_file, contact_force)
+    check_output_dir(output, "-o/--output")
+    try:
+        options = BatchOptions(steps=tuple(s.strip() for s in steps.split(",") if s.strip()), params=params,
+                               label_params=label_params, object_id=object_id,
+                               cache_dir=None if cache_dir is None else str(cache_dir),
+                               chunk_frames=chunk_frames,
+                               model_path=None if model_path is None else str(model_path.resolve()))
+        if model_path is not None and not model_path.is_file():
+            raise ValueError(f"--model {model_path}: expected a model.json file")
+        find_sessions(sessions)  # a wrong SESSIONS argument fails here, before any engine starts
+        engine = RayEngine(address=ray_address) if (ray or ray_address) else LocalEngine(processes)
+    except (SessionError, ValueError, RuntimeError) as exc:
+        _fail(str(exc))
+    try:
+        with _progress() as progress:
+            task = progress.add_task("batch", total=None)
+            summary = run_batch(sessions, output, options, engine, progress=lambda done, total, step: progress.update(
+                task, completed=done, total=total, description=f"batch: {step}"))
+    except (SessionError, ValueError) as exc:
+        _fail(str(exc))
+    finally:
+        engine.close()
+    for line in summary_lines(summary):
+        typer.echo(line)
+    typer.echo(f"{output / 'summary.json'}: the dataset summary")
+    if summary.failed or any(v.startswith("failed") for v in summary.dataset.values()):
+        raise typer.Exit(code=1)
 
 
 def _commands() -> list[str]:

@@ -8,7 +8,7 @@ Entity tree (the README lists it too)::
 
     world                          ViewCoordinates RDF, AnnotationContext of the layer classes (static)
     world/camera/left              Pinhole from K.txt (static)
-    world/camera/left/image        left image: EncodedImage (JPEG) or Image (--raw-images)
+    world/camera/left/image        left image: VideoStream (AV1/H.264, --images video), EncodedImage (JPEG) or Image (raw)
     world/camera/left/layers       SegmentationImage of the layer classes (full resolution)
     world/camera/left/patch        Boxes2D: the N2 window of the selected patch, labelled with its distance
     world/camera/right             Transform3D (baseline along +x) + Pinhole (static)
@@ -17,7 +17,8 @@ Entity tree (the README lists it too)::
     world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m)
     world/camera/depth/layers      SegmentationImage of the layer classes on the depth grid
     world/camera/depth/patch       Boxes2D: the patch window on the depth grid
-    world/cloud/near, world/cloud/far   Points3D: RGB cloud, full density near the patch / voxel-merged elsewhere
+    world/cloud/near               Points3D: RGB cloud around the patch (every 2nd pixel)
+    world/cloud/far                Points3D: RGB cloud elsewhere, every 16th pixel merged into 4 mm voxels
     world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
     world/patch/tool               Points3D: interior pixels whose depths gave the tool depth
     world/patch/gap                Arrows3D: tool depth -> tissue along the patch centre's ray
@@ -62,6 +63,7 @@ from contact_viz.params import MM_PER_M
 from contact_viz.viz.style import (
     DEPTH_COLORMAP,
     DIAGNOSTIC_STYLES,
+    KINEMATIC_STYLES,
     LAYER_OVERLAY_OPACITY,
     LAYER_STYLES,
     PATCH_COLOUR_NAME,
@@ -115,6 +117,8 @@ __all__ = [
     "log_frame",
     "log_model_hint",
     "log_static",
+    "log_video_codec",
+    "log_video_samples",
     "send_known_series",
     "set_frame_time",
 ]
@@ -158,6 +162,11 @@ ENTITY_LEFT_EVIDENCE = "world/camera/left/evidence"
 ENTITY_EVIDENCE_RESIDUAL = "world/camera/left/evidence/residual"
 ENTITY_EVIDENCE_CONTOUR = "world/camera/left/evidence/contour"
 ENTITY_LOG = "log"
+ENTITY_KINEMATIC_TIP = "world/kinematics/tip"  # Points3D: the robot's tool tip (hand-eye x kinematics.csv)
+ENTITY_KINEMATIC_AXES = "world/kinematics/axes"  # Arrows3D: the tool frame's x, y, z axes at the tip
+ENTITY_LEFT_KINEMATIC_TIP = "world/camera/left/kinematic_tip"  # Points2D: its projection on the left image
+ENTITY_LEFT_MASK_TIP = "world/camera/left/mask_tip"  # Points2D: the tool tip estimated from the mask
+ENTITY_SERIES_TIP = "series/tip"  # Scalars error_px, error_mm: kinematic tip vs mask tip
 ENTITY_CONFIG = "config"  # TextDocument (static): the resolved configuration of the run, JSON
 
 TIMELINE_FRAME = "frame"  # sequence timeline: frame index in the session
@@ -231,6 +240,8 @@ class FrameView:
     diagnostic_scores: dict | None = None  # check code -> measured value / threshold (> 1 fires)
     evidence: FrameEvidence | None = None  # residual image and contour of the frame checks
     has_right: bool = False  # the session has a right image here (if right_* are None it is cleared)
+    left_in_video: bool = False  # the left image goes to its video stream (log_video_samples), not logged here
+    right_in_video: bool = False  # the right image goes to its video stream
     notes: Sequence[str] = ()  # other warnings of this frame (e.g. an unreadable right image)
 
 
@@ -261,10 +272,12 @@ def log_static(
     depth_K: np.ndarray,
     with_right: bool,
     with_model: bool,
+    right_step: int = 1,
 ) -> None:
     """Log what never changes: view coordinates, layer classes, cameras and the series' styles.
 
-    ``depth_K`` is the camera matrix of the decimated depth grid (every ``depth_step``-th pixel).
+    ``depth_K`` is the camera matrix of the decimated depth grid (every ``depth_step``-th pixel);
+    the right image is logged at 1 / ``right_step`` of the left image's size (its camera says so).
     """
     rec.send_recording_name(session.name)
     rec.log(
@@ -286,7 +299,8 @@ def log_static(
         rec.log(
             ENTITY_RIGHT_CAMERA,
             rr.Transform3D(translation=[session.calibration.baseline_m, 0.0, 0.0]),
-            rr.Pinhole(image_from_camera=K, resolution=[width, height], **pinhole),
+            rr.Pinhole(image_from_camera=_scaled_K(K, right_step),
+                       resolution=[-(-width // right_step), -(-height // right_step)], **pinhole),
             static=True,
         )
     rec.log(ENTITY_SERIES_DISTANCE, _series_lines("distance_mm"), static=True)
@@ -312,6 +326,14 @@ def log_static(
                                                               names=[f"{style.name} (score)"]), static=True)
 
 
+def _scaled_K(K: np.ndarray, step: int) -> np.ndarray:
+    """K of the image downscaled by ``step`` (fx, fy, cx, cy / step; the sub-pixel offset of the pixel centres,
+    under half a pixel of the small image, does not show)."""
+    K = np.array(K, dtype=np.float64)
+    K[:2] /= float(step)
+    return K
+
+
 def layer_legend() -> str:
     """The drawn layer classes in words ("blue: tool interior · ..."), for a view title.
 
@@ -321,7 +343,8 @@ def layer_legend() -> str:
     return " · ".join(f"{s.colour_name}: {s.name}" for s in LAYER_STYLES if s.rgba[3] > 0)
 
 
-def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rrb.Blueprint:
+def default_blueprint(*, with_right: bool = True, with_model: bool = True,
+                      with_kinematics: bool = False) -> rrb.Blueprint:
     """The layout sent with every recording: images over the 3D scene on the left, stacked time series on the right.
 
     Left column, top: the left image with the layer overlay and the patch box (large; its title
@@ -375,6 +398,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
                                # 2 series per check: a legend would cover the plot; hover names them, `log` says why
                                plot_legend=rrb.PlotLegend(visible=False)),
             rrb.TextLogView(name="log", origin=ENTITY_LOG),
+            *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=ENTITY_SERIES_TIP,
+                                  axis_x=linked)] if with_kinematics else []),
             active_tab=0,
         ),
     ]
@@ -441,13 +466,38 @@ def set_frame_time(rec: rr.RecordingStream, index: int, timestamp_s: float) -> N
     rec.set_time(TIMELINE_TIME, duration=float(timestamp_s))
 
 
-def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None) -> None:
+def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None,
+               in_video: bool = False) -> None:
+    if in_video:
+        return  # its sample is logged by log_video_samples when the encoder has it
     if jpeg is not None:
         rec.log(entity, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
     elif rgb is not None:
         rec.log(entity, rr.Image(rgb, color_model="RGB"))
     else:
         rec.log(entity, rr.Clear(recursive=False))
+
+
+VIDEO_CODECS = {"av1": rr.VideoCodec.AV1, "h264": rr.VideoCodec.H264}  # VideoParams.codec -> Rerun's codec
+
+
+def log_video_codec(rec: rr.RecordingStream, entities: Sequence[str], codec: str) -> None:
+    """Say (statically) that the images of ``entities`` are video streams of ``codec`` ("av1" or "h264")."""
+    for entity in entities:
+        rec.log(entity, rr.VideoStream(codec=VIDEO_CODECS[codec]), static=True)
+
+
+def log_video_samples(rec: rr.RecordingStream, entity: str, samples: Sequence, timestamps_s: np.ndarray) -> None:
+    """Log encoded video ``samples`` (contact_viz.viz.video.EncodedSample, tagged with their frame index) of
+    ``entity`` at their frames; ``timestamps_s`` maps a frame index to its session time (s)."""
+    if not samples:
+        return
+    index = np.array([s.tag for s in samples], dtype=np.int64)
+    times = [rr.TimeColumn(TIMELINE_FRAME, sequence=index),
+             rr.TimeColumn(TIMELINE_TIME, duration=np.asarray(timestamps_s, dtype=np.float64)[index])]
+    rec.send_columns(entity, indexes=times,
+                     columns=rr.VideoStream.columns(sample=[s.data for s in samples],
+                                                    is_keyframe=[s.is_keyframe for s in samples]))
 
 
 def _box(window: tuple[float, float, float, float], label: str) -> rr.Boxes2D:
@@ -487,10 +537,10 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
         raise ValueError(f"log_frame: frame {frame.index} has no patch result (a bad frame); use log_bad_frame")
     set_frame_time(rec, frame.index, frame.timestamp_s)
 
-    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb)
+    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb, view.left_in_video)
     rec.log(ENTITY_LEFT_LAYERS, rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
     if view.has_right:
-        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb)
+        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb, view.right_in_video)
     rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP))
     rec.log(ENTITY_DEPTH_LAYERS, rr.SegmentationImage(view.depth_layers, opacity=LAYER_OVERLAY_OPACITY))
 
@@ -498,8 +548,9 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
         cloud = view.cloud
         rec.log(ENTITY_CLOUD_NEAR, rr.Points3D(cloud.near_points_m, colors=cloud.near_colors,
                                                radii=[cloud.near_radius_m]))
-        rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
-                                              radii=[cloud.far_radius_m]))
+        if len(cloud.far_points_m):  # (stride_px=0: no far part)
+            rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
+                                                  radii=[cloud.far_radius_m]))
 
     geometry = view.geometry
     if patch.window_xyxy is not None and geometry is not None:
@@ -567,6 +618,32 @@ def log_session_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagn
         set_frame_time(rec, diagnostic.index, timestamp_s)
         _log_series(rec, diagnostic_entity(diagnostic.code), 1.0)
         rec.log(ENTITY_LOG, rr.TextLog(f"session: {diagnostic.message}", level=rr.TextLogLevel.WARN))
+
+
+KINEMATIC_AXIS_M = 0.005  # drawn length of the tool frame's axes, m
+
+
+def log_kinematic_tip(rec: rr.RecordingStream, tip) -> None:
+    """Log a frame's :class:`contact_viz.geometry.kinematics.KinematicTip` (None: no pose near the frame)."""
+    entities = (ENTITY_KINEMATIC_TIP, ENTITY_KINEMATIC_AXES, ENTITY_LEFT_KINEMATIC_TIP, ENTITY_LEFT_MASK_TIP)
+    if tip is None:
+        for entity in entities:
+            rec.log(entity, rr.Clear(recursive=False))
+        error_px = error_mm = math.nan
+    else:
+        rec.log(ENTITY_KINEMATIC_TIP, rr.Points3D([tip.tip_m], colors=[KINEMATIC_STYLES["tip"]], radii=[0.0008],
+                                                  labels=["kinematic tip"]))
+        rec.log(ENTITY_KINEMATIC_AXES, rr.Arrows3D(origins=[tip.tip_m] * 3, vectors=tip.axes.T * KINEMATIC_AXIS_M,
+                                                   colors=list(KINEMATIC_STYLES["axes"])))
+        for entity, xy, key in ((ENTITY_LEFT_KINEMATIC_TIP, tip.tip_xy_px, "tip"),
+                                (ENTITY_LEFT_MASK_TIP, tip.mask_tip_xy_px, "mask")):
+            if xy is not None and np.isfinite(xy).all():
+                rec.log(entity, rr.Points2D([xy], colors=[KINEMATIC_STYLES[key]], radii=[-4.0]))
+            else:
+                rec.log(entity, rr.Clear(recursive=False))
+        error_px, error_mm = tip.error_px, tip.error_mm
+    _log_series(rec, f"{ENTITY_SERIES_TIP}/error_px", error_px)
+    _log_series(rec, f"{ENTITY_SERIES_TIP}/error_mm", error_mm)
 
 
 def log_bad_frame(
