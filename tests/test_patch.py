@@ -58,7 +58,9 @@ def literal_patch(depth, tool, p: PatchParams):
                 yield qy, qx
 
     band_pixels = [(int(y), int(x)) for y, x in zip(*np.nonzero(band))]  # row-major
-    d, z_tool = {}, {}
+    # The bleeding test: the tissue beyond the band reaches bleed_beyond_px past its outer edge.
+    beyond = ~tool & (dist_out > p.ring_px + band_w) & (dist_out <= p.ring_px + band_w + p.bleed_beyond_px)
+    d, z_tool, bled = {}, {}, set()
     for y, x in band_pixels:
         if not valid[y, x]:
             continue
@@ -66,18 +68,25 @@ def literal_patch(depth, tool, p: PatchParams):
         if len(tool_depths) >= p.tau_tool:
             z_tool[(y, x)] = sum(tool_depths) / len(tool_depths)
             d[(y, x)] = float(depth[y, x]) - z_tool[(y, x)]
+            tissue = [float(depth[q]) for q in window(y, x, p.n1 // 2) if beyond[q] and valid[q]]
+            if p.reject_bleeding and tissue:
+                step = sum(tissue) / len(tissue) - z_tool[(y, x)]
+                if step >= p.bleed_step_m and d[(y, x)] < step / 2:  # nearer the tool's depth: bled
+                    del d[(y, x)]
+                    bled.add((y, x))
     s = {}
     for y, x in band_pixels:
         near = [abs(d[q]) for q in window(y, x, p.n2 // 2) if q in d]
         if len(near) >= p.tau_patch:
             s[(y, x)] = sum(near) / len(near)
-    out = {"interior": interior, "ring": ring, "band": band, "d": d, "s": s, "band_w": band_w, "shaft": shaft}
+    out = {"interior": interior, "ring": ring, "band": band, "d": d, "s": s, "band_w": band_w, "shaft": shaft,
+           "bled": bled}
     if not band_pixels:
         out["reason"] = REASON_NO_BAND
     elif not d:
-        out["reason"] = REASON_NO_TOOL_DEPTH
+        out["reason"] = "depth_bleeding" if bled else REASON_NO_TOOL_DEPTH
     elif not s:
-        out["reason"] = REASON_NO_CANDIDATE
+        out["reason"] = "depth_bleeding" if bled else REASON_NO_CANDIDATE
     else:
         best = min(s, key=lambda q: s[q])  # first minimum in row-major order
         in_window = [q for q in window(*best, p.n2 // 2) if q in d]
@@ -131,6 +140,7 @@ def assert_matches_literal(depth, tool, params):
                 assert s == pytest.approx(slow["s"][key], abs=1e-9)
         assert fast.n_band == len(fast.band_yx) == int(slow["band"].sum())
         assert fast.n_valid_distance == len(slow["d"])
+        assert fast.n_bleeding == len(slow["bled"])
         assert fast.n_candidates == len(slow["s"])
     if slow["reason"] is None:
         assert fast.distance_m == pytest.approx(slow["distance"], abs=1e-6)

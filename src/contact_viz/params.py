@@ -71,6 +71,10 @@ class PatchParams:
     band_scale: float = 0.1  # exterior band width per px of visible shaft width, px/px
     band_min_px: float = 2.0  # narrowest exterior band, px
     band_max_px: float = 8.0  # widest exterior band, px
+    # Depth bled from the tool over the tissue (issue 13; the bleeding test of geometry.patch._band_distances):
+    reject_bleeding: bool = True  # drop band pixels whose depth is nearer the tool's than the tissue's beyond, -
+    bleed_step_m: float = 0.004  # ... only where tool and tissue beyond differ in depth by at least this, m
+    bleed_beyond_px: float = 4.0  # the tissue beyond: background up to this far past the band's outer edge, px
 
     def __post_init__(self) -> None:
         for name in ("n1", "n2"):
@@ -89,6 +93,9 @@ class PatchParams:
             raise ValueError(f"PatchParams.eps_m must be > 0, got {self.eps_m!r}")
         if self.erosion_px < 0 or self.ring_px < 0 or self.band_scale < 0:
             raise ValueError("PatchParams.erosion_px, ring_px and band_scale must be >= 0")
+        if not self.bleed_step_m > 0 or not self.bleed_beyond_px >= 1:
+            raise ValueError(f"PatchParams needs bleed_step_m > 0 and bleed_beyond_px >= 1, got "
+                             f"{self.bleed_step_m!r} and {self.bleed_beyond_px!r}")
         if not 0 < self.band_min_px <= self.band_max_px:
             raise ValueError(
                 f"PatchParams needs 0 < band_min_px <= band_max_px, got {self.band_min_px}, {self.band_max_px}"
@@ -105,6 +112,11 @@ class PatchParams:
     def outer_reach_px(self) -> float:
         """Largest distance from the tool edge at which a band pixel can lie, px."""
         return self.ring_px + self.band_max_px
+
+    @property
+    def depth_reach_px(self) -> float:
+        """Largest distance from the tool edge at which the patch reads the depth, px."""
+        return self.outer_reach_px + (self.bleed_beyond_px if self.reject_bleeding else 0.0)
 
 
 @dataclass(frozen=True)
