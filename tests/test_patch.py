@@ -58,8 +58,9 @@ def literal_patch(depth, tool, p: PatchParams):
                 yield qy, qx
 
     band_pixels = [(int(y), int(x)) for y, x in zip(*np.nonzero(band))]  # row-major
-    # The bleeding test: the tissue beyond the band reaches bleed_beyond_px past its outer edge.
-    beyond = ~tool & (dist_out > p.ring_px + band_w) & (dist_out <= p.ring_px + band_w + p.bleed_beyond_px)
+    # The bleeding test: the tissue beyond = background within bleed_beyond_px of the band's outer edge.
+    outer = tool | (dist_out <= p.ring_px + band_w)  # the tool, its ring and its band
+    beyond = ~outer & (distance_transform_edt(~outer) <= p.bleed_beyond_px)
     d, z_tool, bled = {}, {}, set()
     for y, x in band_pixels:
         if not valid[y, x]:
@@ -389,7 +390,7 @@ def test_patch_on_its_depth_rows_equals_patch_on_the_frame(seed):
         math.isnan(whole.distance_m) and math.isnan(compute_patch(scrambled, tool, params).distance_m))
     band = compute_patch(depth[row0:row1], tool[row0:row1], params)
     assert band.reason == whole.reason
-    for name in ("shaft_width_px", "band_width_px", "tool_area_px", "n_band", "n_valid_distance", "n_candidates",
+    for name in ("shaft_width_px", "band_width_px", "tool_area_px", "n_band", "n_valid_distance", "n_candidates", "n_bleeding",
                  "invalid_depth_fraction", "distance_m", "score_m", "tool_depth_m", "signal"):
         a, b = getattr(band, name), getattr(whole, name)
         assert a == b or (math.isnan(a) and math.isnan(b)), name

@@ -74,7 +74,7 @@ class PatchParams:
     # Depth bled from the tool over the tissue (issue 13; the bleeding test of geometry.patch._band_distances):
     reject_bleeding: bool = True  # drop band pixels whose depth is nearer the tool's than the tissue's beyond, -
     bleed_step_m: float = 0.004  # ... only where tool and tissue beyond differ in depth by at least this, m
-    bleed_beyond_px: float = 4.0  # the tissue beyond: background up to this far past the band's outer edge, px
+    bleed_beyond_px: float = 4.0  # the tissue beyond: background within this of the band's outer edge, px
 
     def __post_init__(self) -> None:
         for name in ("n1", "n2"):
