@@ -1,7 +1,7 @@
 """The study of issue 13: contact detection with classical stereo (SGBM) depth instead of the rendered one.
 
     python recipes/sgbm_study.py                        # 640x360, 150 frames, into .study/
-    python recipes/sgbm_study.py --dir /tmp/s --frames 60 --size 320x180   # smaller and faster
+    python recipes/sgbm_study.py --first-frames 75      # the same sessions, their first 75 frames (faster)
 
 Ten ``contact-viz synth`` sessions (six ``cup`` for training, seeds 1300-1305; one test session
 each on ``cup``, ``kidney``, ``liver`` and ``glove``, seeds 1310-1313) are generated once into
@@ -49,7 +49,7 @@ from contact_viz.io.session import BadFrame, open_session
 from contact_viz.model.hmm import LosoEnsemble
 from contact_viz.model.metrics import format_table, macro_mean, session_metrics, MACRO_ROW
 from contact_viz.params import LabelParams, PatchParams
-from contact_viz.pipeline.extract import cached_features, feature_arrays
+from contact_viz.pipeline.extract import cached_features, extract_features, feature_arrays
 
 TRAIN = [(f"cup_train_{k}", "cup", 1300 + k) for k in range(6)]
 TEST = [("cup_test", "cup", 1310), ("kidney_test", "kidney", 1311), ("liver_test", "liver", 1312),
@@ -133,12 +133,17 @@ def table1(signals: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, dict]
     return rows
 
 
-def source_signals(directory: Path, source: str, params: PatchParams, cache_dir: Path, processes: int) -> dict:
+def source_signals(directory: Path, source: str, params: PatchParams, cache_dir: Path, processes: int,
+                   first: int | None) -> dict:
     out = {}
     for name, _, _ in TRAIN + TEST:
         session = open_source(directory, source, name, cache_dir)
         start = time.perf_counter()
-        rows, cached = cached_features(session, params, cache_dir=cache_dir, processes=processes)
+        if first is None:
+            rows, cached = cached_features(session, params, cache_dir=cache_dir, processes=processes)
+        else:
+            rows, cached = extract_features(session, params, indices=range(min(first, len(session))),
+                                            processes=processes), False
         log(f"  {source}: {name} {'(cached)' if cached else f'in {time.perf_counter() - start:.0f} s'}")
         out[name] = feature_arrays(rows)
     return out
@@ -149,27 +154,26 @@ def truth_depth(directory: Path, name: str, indices: list[int]) -> dict[int, np.
     from contact_viz.synth import SynthParams, true_depth
 
     path = directory / "truth" / f"{name}.npz"
-    key = "_".join(map(str, indices))
     if path.is_file():
         data = np.load(path)
-        if str(data["key"]) == key:
+        if all(f"f{i}" in data.files for i in indices):
             return {i: data[f"f{i}"] for i in indices}
     g = json.loads((directory / "sessions" / name / "session.json").read_text())["generator"]
     params = SynthParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in g.items()})
     depth = true_depth(params, indices)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, key=key, **{f"f{i}": d for i, d in depth.items()})
+    np.savez_compressed(path, **{f"f{i}": d for i, d in depth.items()})
     return depth
 
 
-def band_profile(directory: Path, cache_dir: Path, step: int) -> dict[str, dict]:
+def band_profile(directory: Path, cache_dir: Path, step: int, first: int | None) -> dict[str, dict]:
     """Per source: median and 10th percentile of the depth error (m) at 1..PROFILE_PX px from the mask
     edge, and the share of valid exterior-band pixels within WITHIN_M of the true depth."""
     errors = {s: [[] for _ in range(PROFILE_PX)] for s in SOURCES}
     band = {s: [0, 0, 0] for s in SOURCES}  # within, valid, band pixels
     for name, _, _ in TEST:
         sessions = {s: open_source(directory, s, name, cache_dir) for s in SOURCES}
-        indices = list(range(0, len(sessions["rendered"]), step))
+        indices = list(range(0, min(first or len(sessions["rendered"]), len(sessions["rendered"])), step))
         truth = truth_depth(directory, name, indices)
         for i in indices:
             frame = sessions["rendered"].load_frame(i, ("mask",))
@@ -215,15 +219,16 @@ def bleed(depth_m: np.ndarray, tool: np.ndarray, px: int) -> np.ndarray:
     return out
 
 
-def bleeding_study(directory: Path, cache_dir: Path, widths: list[int]) -> dict[str, dict]:
+def bleeding_study(directory: Path, cache_dir: Path, widths: list[int], first: int | None):
     """Macro Table-1 rows with the rendered depth bled k px, patch without and with the bleeding test."""
     variants = {"as before": PatchParams(reject_bleeding=False), "bleeding test": PatchParams()}
     signals = {(k, v): {} for k in widths for v in variants}
     for name, _, _ in TRAIN + TEST:
         session = open_source(directory, "rendered", name, cache_dir)
-        labels = np.asarray(session.labels)
-        sig = {key: np.full(len(session), np.nan) for key in signals}
-        for frame in session.iter_frames(("mask", "depth")):
+        count = min(first or len(session), len(session))
+        labels = np.asarray(session.labels)[:count]
+        sig = {key: np.full(count, np.nan) for key in signals}
+        for frame in session.iter_frames(("mask", "depth"), indices=range(count)):
             if isinstance(frame, BadFrame):
                 continue
             tool = frame.tool_mask != 0
@@ -250,20 +255,25 @@ def main(argv=None) -> int:
     parser.add_argument("--processes", type=int, default=2, help="processes for feature extraction")
     parser.add_argument("--profile-step", type=int, default=5, help="band profile on every n-th test frame")
     parser.add_argument("--bleed-px", default="0,2,4,6", help="bleeding widths to test, px (comma-separated)")
+    parser.add_argument("--first-frames", type=int, default=None,
+                        help="use only the first N frames of each session (all sessions and methods alike)")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x"))
     directory = args.dir.resolve()
     cache_dir = directory / "cache"
     make_sessions(directory, args.frames, size)
-    results: dict = {"frames": args.frames, "size": args.size, "tables": {}}
+    results: dict = {"frames": args.frames, "first_frames": args.first_frames, "size": args.size, "tables": {}}
+    if args.first_frames:
+        print(f"(only the first {args.first_frames} of the {args.frames} frames of each session are used)")
     for method, (source, params) in METHODS.items():
         log(f"== {method}")
-        results["tables"][method] = table1(source_signals(directory, source, params, cache_dir, args.processes))
+        results["tables"][method] = table1(source_signals(directory, source, params, cache_dir, args.processes,
+                                                          args.first_frames))
     for method, rows in results["tables"].items():
         print(f"\nTable 1, {method}")
         print(format_table(rows))
     log("== band error profile")
-    profile = results["band_profile"] = band_profile(directory, cache_dir, args.profile_step)
+    profile = results["band_profile"] = band_profile(directory, cache_dir, args.profile_step, args.first_frames)
     print(f"\nBand error profile (test sessions, every {args.profile_step}th frame): depth - true depth, mm, "
           "by distance from the mask edge")
     print("px    " + "".join(f"{s + ' med':>22s}{'p10':>8s}" for s in SOURCES))
@@ -277,7 +287,7 @@ def main(argv=None) -> int:
     widths = [int(v) for v in args.bleed_px.split(",") if v.strip()]
     if widths:
         log("== edge bleeding on the rendered depth")
-        bled, changed = bleeding_study(directory, cache_dir, widths)
+        bled, changed = bleeding_study(directory, cache_dir, widths, args.first_frames)
         results["bleeding"], results["bleeding_frames_changed"] = bled, changed
         print("\nEdge bleeding: rendered depth with the tool's depth spread k px into the tissue (macro rows)")
         print(format_table(bled))

@@ -12,6 +12,11 @@ uniqueness test, then a left-right consistency check of our own (OpenCV's contri
 flipped pair, and a left pixel is kept only where the right view maps it back within
 ``lr_max_diff_px``.
 
+When the frame's tool mask is known, :func:`masked_sgbm_disparity` matches the tissue with the
+tool inpainted out of both views, so that the tool's disparity is not dragged over the tissue
+beside it (foreground fattening), which is where the contact patch reads the tissue (issue 13;
+docs/depth.md has the measurements).
+
 Disparities are cached per frame outside the session directory (``contact_viz.io.depth_cache``), as
 16-bit PNGs of the fixed-point (1/16 px) disparity, keyed by the session's path, the sizes and
 modification times of the calibration and image files they depend on, and the resolved
