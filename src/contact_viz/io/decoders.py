@@ -7,20 +7,21 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 from PIL import Image
 
-from contact_viz.errors import SessionError
-from contact_viz.io.npy_rows import read_npy_rows
+from contact_viz.errors import SessionError, SessionFormatError
+from contact_viz.io.npy_rows import TruncatedNpyError, data_end, read_header, read_npy_rows
 from contact_viz.io.palette_png import is_palette_png, palette_indices
+from contact_viz.params import MM_PER_M
 
 
-MM_PER_M = 1000.0  # millimetres per metre (uint16 depth PNGs hold millimetres)
 # Exceptions that mean "this file could not be decoded" (PIL raises SyntaxError for some broken PNGs).
 DECODE_ERRORS = (OSError, ValueError, EOFError, SyntaxError, zlib.error, cv2.error)
 
@@ -38,6 +39,35 @@ def _read_bytes(path: Path, what: str) -> np.ndarray:
     return data
 
 
+def _decode(path: Path, what: str, decode: Callable[[np.ndarray], np.ndarray | None]) -> np.ndarray:
+    """``decode`` applied to the file's bytes; a missing, unreadable, empty or undecodable file is one
+    SessionError naming the file and ``what`` was expected."""
+    data = _read_bytes(path, what)
+    try:
+        image = decode(data)
+    except DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+    if image is None or image.size == 0:
+        raise SessionError(path, f"expected {what}, could not decode it")
+    return image
+
+
+def _imdecode_unchanged(data: np.ndarray) -> np.ndarray | None:
+    return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+
+
+def _mask_ids(data: np.ndarray) -> np.ndarray | None:
+    """A mask file's pixel values: palette indices of a palettized PNG, else OpenCV's decode."""
+    raw = data.tobytes()
+    if not is_palette_png(raw):
+        return _imdecode_unchanged(data)
+    ids = palette_indices(raw)
+    if ids is None:
+        with Image.open(io.BytesIO(raw)) as image:
+            ids = np.asarray(image)
+    return ids
+
+
 def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
     """Decode a tool mask PNG to (H, W) bool, True = tool.
 
@@ -46,32 +76,18 @@ def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
     nonzero (``object_id`` is then an error). Palettized PNGs are decoded to their palette
     indices (contact_viz.io.palette_png; PIL for bit depths other than 8), the rest by OpenCV.
     """
-    what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
-    data = _read_bytes(path, what)
-    try:
-        raw = data.tobytes()
-        if is_palette_png(raw):
-            ids = palette_indices(raw)
-            if ids is None:
-                with Image.open(io.BytesIO(raw)) as image:
-                    ids = np.asarray(image)
-        else:
-            ids = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    except DECODE_ERRORS as exc:
-        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
-    if ids is None:
-        raise SessionError(path, f"expected {what}, could not decode it")
+    ids = _decode(path, "a tool mask PNG (palettized object ids, or 8-bit 0/255)", _mask_ids)
     if ids.ndim == 2:
         return ids == object_id if object_id is not None else ids != 0
     if ids.ndim == 3 and ids.shape[2] in (3, 4):
         if object_id is not None:
-            raise SessionError(
+            raise SessionFormatError(
                 path,
-                f"expected a palettized or single-channel mask to select object_id={object_id}, "
+                f"expected a palettized or single-channel mask to select --object-id {object_id}, "
                 f"found {ids.shape[2]} channels",
             )
         return np.any(ids[:, :, :3] != 0, axis=2)
-    raise SessionError(path, f"expected {what}, found an array of shape {ids.shape}")
+    raise SessionFormatError(path, f"expected {what}, found an array of shape {ids.shape}")
 
 
 def _invalid_to_nan(depth_m: np.ndarray) -> np.ndarray:
@@ -91,6 +107,9 @@ def _loading(path: Path, what: str) -> Iterator[None]:
         raise  # already names the file
     except FileNotFoundError as exc:
         raise SessionError(path, f"expected {what}, file missing") from exc
+    except TruncatedNpyError as exc:
+        raise SessionError(path, f"expected {what}, found a truncated file ({exc.size} bytes, its header "
+                                 f"announces {exc.expected})") from exc
     except DECODE_ERRORS as exc:
         raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
 
@@ -99,14 +118,14 @@ def _check_float_2d(path: Path, what: str, dtype: object, shape: object) -> None
     """SessionError unless ``dtype``/``shape`` describe a 2-D float32 or float64 array."""
     is_float = isinstance(dtype, np.dtype) and dtype.kind == "f" and dtype.itemsize in (4, 8)
     if not is_float or not isinstance(shape, tuple) or len(shape) != 2:
-        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+        raise SessionFormatError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
 
 
 def _check_image_shape(path: Path, shape: tuple[int, ...], image_size: tuple[int, int], what: str) -> None:
     """SessionError unless ``shape`` (an array's, channels ignored) is ``image_size`` (H, W),
     the left images' size."""
     if tuple(shape[:2]) != tuple(image_size):
-        raise SessionError(
+        raise SessionFormatError(
             path,
             f"expected a {what} of {image_size[0]}x{image_size[1]} px (height x width, as the left images), "
             f"found {shape[0]}x{shape[1]}",
@@ -114,10 +133,19 @@ def _check_image_shape(path: Path, shape: tuple[int, ...], image_size: tuple[int
 
 
 def _load_float_npy(path: Path, what: str) -> np.ndarray:
-    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``."""
-    with _loading(path, what):
-        raw = np.load(path, allow_pickle=False)
-    _check_float_2d(path, what, getattr(raw, "dtype", type(raw).__name__), getattr(raw, "shape", None))
+    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``.
+
+    The header and the file's length are checked by the same code as the row reader's
+    (read_depth_rows_m), so both accept and refuse the same files with the same message."""
+    with _loading(path, what), open(path, "rb") as handle:
+        offset, dtype, shape, _ = read_header(handle)
+        _check_float_2d(path, what, dtype, shape)
+        end = data_end(offset, dtype, shape)
+        size = os.fstat(handle.fileno()).st_size
+        if size < end:
+            raise TruncatedNpyError(size, end)
+        handle.seek(0)
+        raw = np.load(handle, allow_pickle=False)
     return np.ascontiguousarray(raw, dtype=np.float32)
 
 
@@ -136,23 +164,17 @@ def read_depth_m(path: Path) -> np.ndarray:
         return depth
     if suffix == ".png":
         what = "a 16-bit single-channel depth PNG in millimetres"
-        data = _read_bytes(path, what)
-        try:
-            raw = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-        except DECODE_ERRORS as exc:
-            raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
-        if raw is None:
-            raise SessionError(path, f"expected {what}, could not decode it")
+        raw = _decode(path, what, _imdecode_unchanged)
         if raw.dtype != np.uint16 or raw.ndim != 2:
             channels = 1 if raw.ndim == 2 else raw.shape[2]
-            raise SessionError(
+            raise SessionFormatError(
                 path, f"expected {what}, found {raw.dtype.itemsize * 8}-bit {channels}-channel ({raw.dtype})"
             )
         depth = raw.astype(np.float32)
         depth /= np.float32(MM_PER_M)
         depth.flags.writeable = False
         return depth
-    raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
+    raise SessionFormatError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
 
 
 def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, int]) -> np.ndarray:
@@ -182,23 +204,35 @@ def read_disparity_px(path: Path) -> np.ndarray:
 _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.10 decodes straight to RGB
 
 
+def _imdecode_rgb(data: np.ndarray) -> np.ndarray | None:
+    if _IMREAD_RGB is not None:
+        return cv2.imdecode(data, _IMREAD_RGB)
+    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    return None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
 def read_rgb(path: Path) -> np.ndarray:
     """Decode a colour image to (H, W, 3) uint8 RGB (grey images are expanded, alpha dropped)."""
-    what = "a colour image (PNG or JPEG)"
-    data = _read_bytes(path, what)
-    try:
-        if _IMREAD_RGB is not None:
-            rgb = cv2.imdecode(data, _IMREAD_RGB)
-        else:
-            bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
-            rgb = None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    except DECODE_ERRORS as exc:
-        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
-    if rgb is None or rgb.size == 0:
-        raise SessionError(path, f"expected {what}, could not decode it")
+    rgb = _decode(path, "a colour image (PNG or JPEG)", _imdecode_rgb)
     if rgb.dtype != np.uint8:  # 16-bit colour PNGs: keep the high byte
         rgb = (rgb >> 8).astype(np.uint8)
     return rgb
 
 
 # --------------------------------------------------------------------------------------------
+
+
+def read_image_size(path: Path) -> tuple[int, int]:
+    """(height, width) px of a left image from its header (no full decode); the session reader and the
+    importers take the session's image size from it."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except DECODE_ERRORS as exc:
+        raise SessionError(
+            path,
+            f"expected a readable PNG/JPEG left image to take the image size from ({type(exc).__name__}: {exc})",
+        ) from exc
+    if width <= 0 or height <= 0:
+        raise SessionError(path, f"expected a non-empty left image, found {width}x{height} px")
+    return height, width

@@ -36,15 +36,14 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
-from contact_viz.io.calibration import Calibration, Rectification, StereoCalibration, read_calibration
-from contact_viz.errors import SessionError, SessionWarning
+from contact_viz.io.calibration import Calibration, Rectification, StereoCalibration, read_calibration, read_only
+from contact_viz.errors import SessionError, SessionFormatError, SessionWarning
 from contact_viz.io.prefetch import prefetched
 from contact_viz.params import LabelParams
 from contact_viz.io.decoders import (
-    DECODE_ERRORS,
     _check_image_shape,
+    read_image_size,
     read_depth_m,
     read_depth_rows_m,
     read_disparity_px,
@@ -186,11 +185,11 @@ class Session:
         self.rectification: Rectification | None = stereo.rectification if stereo is not None else None
         self.stems = stems
         self.image_size = image_size
-        self.timestamps_s = _read_only(timestamps_s)
-        self.force_xyz_n = _read_only(force_xyz_n)
-        self.force_n = _read_only(force_n)
-        self.labels = _read_only(labels)
-        self.label_source = _read_only(label_source)
+        self.timestamps_s = read_only(timestamps_s)
+        self.force_xyz_n = read_only(force_xyz_n)
+        self.force_n = read_only(force_n)
+        self.labels = read_only(labels)
+        self.label_source = read_only(label_source)
         self.has_right = bool(right_files)
         self.object_id = object_id
         self.depth_source = depth_source
@@ -230,6 +229,14 @@ class Session:
             raise ValueError(f"side must be 'left' or 'right', got {side!r}")
         files = self._left_files if side == "left" else self._right_files
         return files.get(self.stems[index])
+
+    def layer_file(self, layer: str, stem: str) -> Path | None:
+        """The file frame ``stem``'s "mask" or "depth" (depth/ or disparity/) is read from; None
+        when there is none (a missing file, SGBM depth)."""
+        files = {"mask": self._mask_files, "depth": self._depth_files}.get(layer)
+        if files is None:
+            raise ValueError(f"layer must be 'mask' or 'depth', got {layer!r}")
+        return files.get(stem)
 
     def _image(self, side: str, stem: str, decoded: dict[str, np.ndarray]) -> np.ndarray:
         """Frame ``stem``'s ``side`` image, (H, W, 3) uint8 RGB, rectified if needed; memoized in ``decoded``."""
@@ -292,6 +299,37 @@ class Session:
         return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
             "cached" if cached else "computed"
         )
+
+    def check_format(self) -> None:
+        """Refuse up front a mask or depth folder whose files all hold the wrong kind of data.
+
+        The first frame's mask and depth (or disparity) file are decoded; a shape, dtype,
+        channel or bit-depth fault there (:class:`SessionFormatError`) that the last frame's
+        file shares is a session error, raised naming the first file, so that no command
+        skips every frame one by one and writes a table of bad frames. A fault of the first
+        frame alone, or one that is not about the format (missing, unreadable, truncated),
+        stays a per-frame problem: that frame is skipped with a warning. SGBM depth is not
+        decoded here (it is computed from the images, whose size is checked per frame).
+        """
+        probes = sorted({0, len(self) - 1})
+        layers = []
+        if self._mask_files:
+            layers.append(lambda stem: self._mask(stem))
+        if self.depth_source != "sgbm":
+            layers.append(lambda stem: self._depth(stem, {}))
+        for decode in layers:
+            found = []
+            for index in probes:
+                try:
+                    decode(self.stems[index])
+                except SessionFormatError as error:
+                    found.append(error)
+                except SessionError:
+                    break
+                else:
+                    break
+            if len(found) == len(probes):
+                raise found[0]
 
     def load_depth(self, index: int, with_origin: bool = False):
         """Frame ``index``'s depth (H, W) float32 m (NaN invalid), or a BadFrame.
@@ -383,21 +421,12 @@ class Session:
         Arguments are checked now (ValueError / IndexError), not at the first ``next``.
         """
         wanted = _check_layers(layers)
-        if isinstance(prefetch, bool) or not isinstance(prefetch, int) or prefetch < 1:
-            raise ValueError(f"prefetch must be a positive integer, got {prefetch!r}")
-        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-            raise ValueError(f"workers must be a positive integer, got {workers!r}")
         order = list(range(len(self))) if indices is None else [int(i) for i in indices]
         bad = [i for i in order if not 0 <= i < len(self)]
         if bad:
             raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(self)} frames")
         return prefetched(functools.partial(self._load, layers=wanted), order, prefetch,
                           workers=min(workers, prefetch), thread_name="contact-viz-decode")
-
-
-def _read_only(array: np.ndarray) -> np.ndarray:
-    array.flags.writeable = False
-    return array
 
 
 def _check_layers(layers: Sequence[str]) -> frozenset[str]:
@@ -410,19 +439,6 @@ def _check_layers(layers: Sequence[str]) -> frozenset[str]:
     return wanted
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    """(height, width) px from an image header (no full decode)."""
-    try:
-        with Image.open(path) as image:
-            width, height = image.size
-    except DECODE_ERRORS as exc:
-        raise SessionError(
-            path,
-            f"expected a readable PNG/JPEG left image to take the image size from ({type(exc).__name__}: {exc})",
-        ) from exc
-    if width <= 0 or height <= 0:
-        raise SessionError(path, f"expected a non-empty left image, found {width}x{height} px")
-    return height, width
 
 
 def open_session(
@@ -452,11 +468,15 @@ def open_session(
     if object_id is not None and (isinstance(object_id, bool) or not isinstance(object_id, int) or object_id < 1):
         raise ValueError(f"object_id must be a positive integer (0 is background) or None, got {object_id!r}")
     root = Path(path).expanduser()
-    if not root.exists():
-        raise SessionError(root, "missing: expected a session directory (left/, masks/, depth/, K.txt)")
-    if not root.is_dir():
-        raise SessionError(root, "expected a session directory (left/, masks/, depth/, K.txt), found a file")
-    root = root.resolve()
+    expected = "a session directory (left/, masks/ and K.txt; depth/ optional, see the README)"
+    try:
+        if not root.exists():
+            raise SessionError(root, f"missing: expected {expected}")
+        if not root.is_dir():
+            raise SessionError(root, f"expected {expected}, found a file")
+        root = root.resolve(strict=True)
+    except OSError as exc:  # a symbolic link loop, a path through a file, no permission
+        raise SessionError(root, f"expected {expected}, could not open it ({exc.strerror or exc})") from None
 
     meta = _read_session_json(root / "session.json")
     left_dir = root / "left"
@@ -466,7 +486,7 @@ def open_session(
     if not left_files:
         raise SessionError(left_dir, "expected rectified left frames left/<stem>.png|jpg|jpeg, found none")
     stems = sorted(left_files, key=natural_key)
-    image_size = _image_size(left_files[stems[0]])
+    image_size = read_image_size(left_files[stems[0]])
     stereo = read_calibration(root, image_size)
     mask_files = _find_masks(root, required=require_masks)
     right_dir = root / "right"
@@ -499,7 +519,7 @@ def open_session(
         labels[manual_index] = manual_contact
         label_source[manual_index] = "manual"
 
-    return Session(
+    session = Session(
         root=root,
         name=meta.get("name") or root.name,
         phantom=meta.get("phantom"),
@@ -523,3 +543,5 @@ def open_session(
         stereo=stereo,
         sgbm_cache=sgbm_cache,
     )
+    session.check_format()
+    return session
