@@ -278,8 +278,9 @@ def main(argv=None) -> int:
           "by distance from the mask edge")
     print("px    " + "".join(f"{s + ' med':>22s}{'p10':>8s}" for s in SOURCES))
     for k in range(PROFILE_PX):
-        cells = "".join(f"{1000 * (profile[s]['median_m'][k] or np.nan):22.2f}{1000 * (profile[s]['p10_m'][k] or np.nan):8.2f}"
-                        for s in SOURCES)
+        mm = {s: [1000 * (profile[s][q][k] if profile[s][q][k] is not None else np.nan) for q in ("median_m", "p10_m")]
+              for s in SOURCES}
+        cells = "".join(f"{mm[s][0]:22.2f}{mm[s][1]:8.2f}" for s in SOURCES)
         print(f"{k + 1:<6d}{cells}")
     for s in SOURCES:
         print(f"{s}: exterior band pixels within 3 mm of the true depth: {100 * profile[s]['band_within_3mm']:.1f}% "

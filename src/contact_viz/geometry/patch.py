@@ -261,7 +261,7 @@ class _Layers:
     shaft_width_px: float
     tool_area_px: int
     band_width_px: float
-    beyond_sum_int: np.ndarray | None = None  # (h+1, w+1) integral of the valid depth beyond the band, m (bleeding test)
+    beyond_sum_int: np.ndarray | None = None  # (h+1, w+1) integral of the valid depth beyond the band, m
     beyond_cnt_int: np.ndarray | None = None  # (h+1, w+1) integral of its count; None = no bleeding test
     bleed_step_m: float = 0.0  # PatchParams.bleed_step_m
 
@@ -275,8 +275,8 @@ def _tool_u8(tool_mask: np.ndarray) -> np.ndarray:
 def _crop_bounds(bbox: tuple[int, int, int, int], shape: tuple[int, int], params: PatchParams) -> tuple[int, int, int, int]:
     """(y0, y1, x0, x1), half-open: the tool's bounding box ``bbox`` (row0, row1, col0, col1,
     inclusive) padded by the reach of the band (and of the bleeding test's tissue beyond it) and
-    clipped to the frame. Every interior, ring and band pixel lies inside it, so windows clipped to it lose nothing that could contribute; the
-    pad is at least 2 px, so that an even row and column of background frame the tool (see
+    clipped to the frame. Every interior, ring and band pixel lies inside it, so windows clipped to
+    it lose nothing that could contribute; the pad is at least 2 px, so that an even row and column of background frame the tool (see
     _shaft_width_px)."""
     row0, row1, col0, col1 = bbox
     pad = max(int(np.ceil(params.depth_reach_px)) + 1, SHAFT_GRID_PX)
