@@ -23,7 +23,7 @@ camera sits at (+baseline, 0, 0) with the same orientation, so true disparity = 
 
 from __future__ import annotations
 
-from contact_viz.synth.files import davis_palette, generate_session
+from contact_viz.synth.files import davis_palette, generate_session, true_depth
 from contact_viz.synth.motion import ToolTrack, plan_tool_track, tissue_displacement
 from contact_viz.synth.params import PHANTOMS, PHASES, REFERENCE_WIDTH_PX, SynthParams
 from contact_viz.synth.render import tool_parts
@@ -61,4 +61,5 @@ __all__ = [
     "tissue_displacement",
     "tissue_frame",
     "tool_parts",
+    "true_depth",
 ]
