@@ -76,7 +76,8 @@ def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
     nonzero (``object_id`` is then an error). Palettized PNGs are decoded to their palette
     indices (contact_viz.io.palette_png; PIL for bit depths other than 8), the rest by OpenCV.
     """
-    ids = _decode(path, "a tool mask PNG (palettized object ids, or 8-bit 0/255)", _mask_ids)
+    what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
+    ids = _decode(path, what, _mask_ids)
     if ids.ndim == 2:
         return ids == object_id if object_id is not None else ids != 0
     if ids.ndim == 3 and ids.shape[2] in (3, 4):
