@@ -16,6 +16,7 @@ from pathlib import Path
 
 from contact_viz.paper.grid_search import DEFAULT_GRID, build_grid, score_grid, write_best_params
 from contact_viz.params import PatchParams
+from contact_viz.pipeline.engines import LocalEngine, RayEngine
 
 
 def ints(text: str) -> list[int]:
@@ -32,6 +33,10 @@ def main() -> None:
     parser.add_argument("--tau-tool", type=ints, default=tau_tools, help="tau_tool values, pixels")
     parser.add_argument("--tau-patch", type=ints, default=tau_patches, help="tau_patch values, distances")
     parser.add_argument("--cache-dir", type=Path, default=None)
+    parser.add_argument("--processes", type=int, default=None, help="local processes [default: one per core]")
+    parser.add_argument("--ray", action="store_true", help="spread the work over a local Ray started on the fly")
+    parser.add_argument("--ray-address", default=None, help="spread the work over an existing Ray cluster "
+                        "(auto, or ray://HOST:10001; the sessions must be at the same path on every node)")
     args = parser.parse_args()
     if len(args.sessions) < 2:
         parser.error("leave-one-session-out needs at least 2 training sessions")
@@ -41,9 +46,16 @@ def main() -> None:
     for note in skipped:
         print(f"skipped: {note}")
     try:
-        results = score_grid(args.sessions, grid, args.cache_dir)
+        engine = (RayEngine(address=args.ray_address) if args.ray or args.ray_address
+                  else LocalEngine(args.processes))
+    except RuntimeError as exc:
+        raise SystemExit(f"error: {exc}") from None
+    try:
+        results = score_grid([s.resolve() for s in args.sessions], grid, args.cache_dir, engine=engine)
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
+    finally:
+        engine.close()
 
     print(f"\n{'N1':>4} {'N2':>4} {'tau_tool':>8} {'tau_patch':>9} {'OOF F1':>8} {'OOF AUPRC':>10} {'found':>6}")
     for r in results:
@@ -57,5 +69,5 @@ def main() -> None:
           f"(OOF F1 {best.oof_f1:.4f}, AUPRC {best.oof_auprc:.4f}) -> {args.output}")
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # the guard spawned worker processes need
     main()

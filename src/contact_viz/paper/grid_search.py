@@ -54,25 +54,54 @@ def build_grid(n1s, n2s, tau_tools, tau_patches, base: PatchParams) -> tuple[lis
     return grid, skipped
 
 
-def session_distances(session_dir: Path, grid: list[PatchParams], cache_dir, progress: Progress):
-    """(T, G) distances in m for every frame and grid point, and the session's labels (T,)."""
+GRID_CHUNK_FRAMES = 64  # frames per grid task when an engine spreads the work, frames
+
+
+def grid_chunk_task(session_dir: str, grid: list[PatchParams], lo: int, hi: int) -> tuple[np.ndarray, list[str]]:
+    """(hi - lo, G) distances in m of frames ``lo .. hi-1`` for every grid point, and the
+    unreadable frames' messages (a task an engine runs in any process or node)."""
     session = open_session(session_dir)
-    key = {"grid": [to_dict(p) for p in grid]}
-    path = cache_path(session.root, "grid", key, ".npy", cache_dir)
-    if path.exists():
-        return session.name, np.load(path), np.asarray(session.labels)
-    task = progress.add_task(f"grid {session.name}", total=len(session))
-    out = np.full((len(session), len(grid)), np.nan)
-    for item in session.iter_frames(layers=("mask", "depth")):
+    out = np.full((hi - lo, len(grid)), np.nan)
+    bad = []
+    for item in session.iter_frames(layers=("mask", "depth"), indices=range(lo, hi)):
         if isinstance(item, BadFrame):
-            warnings.warn(f"frame {item.stem} skipped: {item.reason}", BadFrameWarning, stacklevel=1)
+            bad.append(f"frame {item.stem} skipped: {item.reason}")
         else:
-            out[item.index] = patch_distance_grid(item.depth_m, item.tool_mask, grid)
-        progress.advance(task)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_write(path, "wb") as handle:
-        np.save(handle, out)
-    return session.name, out, np.asarray(session.labels)
+            out[item.index - lo] = patch_distance_grid(item.depth_m, item.tool_mask, grid)
+    return out, bad
+
+
+def session_distances(sessions: Sequence[Path], grid: list[PatchParams], cache_dir, engine, progress: Progress):
+    """Per session: (name, (T, G) distances in m for every frame and grid point, labels (T,)).
+
+    Sessions already in the cache are read from it; the others are computed in chunks of
+    ``GRID_CHUNK_FRAMES`` frames on ``engine`` and cached."""
+    opened = [open_session(s) for s in sessions]
+    key = {"grid": [to_dict(p) for p in grid]}
+    paths = [cache_path(session.root, "grid", key, ".npy", cache_dir) for session in opened]
+    distances = {i: np.load(path) for i, path in enumerate(paths) if path.exists()}
+    calls, owners = [], []
+    for i, session in enumerate(opened):
+        if i not in distances:
+            distances[i] = np.full((len(session), len(grid)), np.nan)
+            for lo in range(0, len(session), GRID_CHUNK_FRAMES):
+                calls.append((grid_chunk_task, (str(session.root), grid, lo, min(lo + GRID_CHUNK_FRAMES, len(session)))))
+                owners.append((i, lo))
+    task = progress.add_task("grid distances", total=sum(c[1][3] - c[1][2] for c in calls))
+    for position, result in engine.run(calls):
+        if isinstance(result, BaseException):
+            raise result
+        i, lo = owners[position]
+        block, bad = result
+        distances[i][lo:lo + block.shape[0]] = block
+        for message in bad:
+            warnings.warn(message, BadFrameWarning, stacklevel=1)
+        progress.advance(task, block.shape[0])
+    for i in {i for i, _ in owners}:
+        paths[i].parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(paths[i], "wb") as handle:
+            np.save(handle, distances[i])
+    return [(session.name, distances[i], np.asarray(session.labels)) for i, session in enumerate(opened)]
 
 
 def loso_scores(signals: list[np.ndarray], labels: list[np.ndarray], names: list[str]) -> tuple[float, float]:
@@ -95,22 +124,34 @@ class GridPoint:
     found: float  # mean share of frames with a patch
 
 
-def score_grid(sessions: list[Path], grid: list[PatchParams], cache_dir, on_skip=print) -> list[GridPoint]:
-    """Every grid point scored on the training ``sessions``, best first (F1, then AUPRC)."""
+def _score_point(signals: list[np.ndarray], labels: list[np.ndarray], names: list[str]) -> tuple[float, float]:
+    return loso_scores(signals, labels, names)
+
+
+def score_grid(sessions: list[Path], grid: list[PatchParams], cache_dir, on_skip=print, engine=None) -> list[GridPoint]:
+    """Every grid point scored on the training ``sessions``, best first (F1, then AUPRC).
+
+    ``engine`` (a :mod:`contact_viz.pipeline.engines` engine; default: this process) runs the
+    frame chunks of the distances and the grid points' LOSO fits; the scores do not depend on it."""
+    from contact_viz.pipeline.engines import LocalEngine
+
+    engine = engine if engine is not None else LocalEngine(1)
     with Progress(transient=True) as progress:
-        per_session = [session_distances(s, grid, cache_dir, progress) for s in sessions]
+        per_session = session_distances(sessions, grid, cache_dir, engine, progress)
     names = [name for name, _, _ in per_session]
     labels = [y.astype(np.int8) for _, _, y in per_session]
+    signals = [[distance_signal(d[:, g], params.eps_m) for _, d, _ in per_session] for g, params in enumerate(grid)]
+    scores: dict[int, object] = dict(engine.run([(_score_point, (signals[g], labels, names)) for g in range(len(grid))]))
     results = []
     for g, params in enumerate(grid):
-        signals = [distance_signal(d[:, g], params.eps_m) for _, d, _ in per_session]
-        try:
-            f1, auprc = loso_scores(signals, labels, names)
-        except ValueError as exc:
+        if isinstance(scores[g], ValueError):
             on_skip(f"n1={params.n1} n2={params.n2} tau_tool={params.tau_tool} tau_patch={params.tau_patch} "
-                    f"not scored: {exc}")
+                    f"not scored: {scores[g]}")
             continue
-        results.append(GridPoint(params, f1, auprc, float(np.mean([np.isfinite(x).mean() for x in signals]))))
+        if isinstance(scores[g], BaseException):
+            raise scores[g]
+        f1, auprc = scores[g]
+        results.append(GridPoint(params, f1, auprc, float(np.mean([np.isfinite(x).mean() for x in signals[g]]))))
     if not results:
         raise ValueError("grid search: no grid point could be scored on the training sessions")
     results.sort(key=lambda r: (-r.oof_f1, -r.oof_auprc))
