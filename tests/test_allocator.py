@@ -20,11 +20,11 @@ import numpy as np
 if sys.argv[2] == "keep":
     from contact_viz.pipeline.allocator import keep_freed_memory
     assert keep_freed_memory()
-from contact_viz.pipeline.extract import _FeatureRowsTask
+from contact_viz.pipeline.extract import FeatureRows
 from contact_viz.params import PatchParams
 from contact_viz.io.session import open_session
 session = open_session(sys.argv[1])
-task = _FeatureRowsTask(session, PatchParams(), tuple(range(len(session))))
+task = FeatureRows(session, PatchParams(), tuple(range(len(session))))
 faults = []
 for index in range(len(session)):
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt

@@ -210,7 +210,7 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
     unreadable files included)."""
     import cv2
 
-    from contact_viz.pipeline.extract import _FeatureRowsTask, feature_row
+    from contact_viz.pipeline.extract import FeatureRows, feature_row
 
     root, height, width = tmp_path / "s", 97, 131
     rng = np.random.default_rng(7)
@@ -243,7 +243,7 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
     session = open_session(root)
     small = PatchParams(n1=11, n2=5, tau_tool=5, tau_patch=3, erosion_px=1.0, ring_px=1.0, band_min_px=1.0, band_max_px=2.0)
     for params in (PatchParams(), small):
-        task = _FeatureRowsTask(session, params, tuple(range(len(session))))
+        task = FeatureRows(session, params, tuple(range(len(session))))
         with pytest.warns(BadFrameWarning):
             whole = [feature_row(session, r) for r in iter_frame_results(session, params)]
         assert task(0, len(session)) == whole

@@ -85,18 +85,18 @@ def extract(
     params_file: ParamsFile = None,
     cache_dir: CacheDir = None,
     processes: Annotated[Optional[int], typer.Option(
-        min=1, help="Processes to spread the frames over, this one included [default: the number of cores, "
-        "at most 8].")] = None,
+        min=1, help="Processes computing frames in parallel; 1 computes them in this process [default: the "
+        "number of cores, at most 8].")] = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
     from contact_viz.pipeline.allocator import keep_freed_memory
-    from contact_viz.pipeline.workers import DEFAULT_PROCESSES, WorkerPool
+    from contact_viz.pipeline.parallel import DEFAULT_PROCESSES, ProcessPool, WorkerError
 
     keep_freed_memory()
     # The workers start first, so that they import NumPy, OpenCV and the patch while this
     # process does the same and opens the session.
-    with WorkerPool((processes or DEFAULT_PROCESSES) - 1, setup=keep_freed_memory,
-                    preload=("contact_viz.pipeline.extract",)) as pool:
+    with ProcessPool(processes or DEFAULT_PROCESSES, initializer=keep_freed_memory,
+                     preload=("contact_viz.pipeline.extract",)) as pool:
         from contact_viz.errors import SessionError
         from contact_viz.pipeline.extract import BadFrameWarning, extract_features, run_config, write_features
         from contact_viz.io.session import open_session
@@ -113,8 +113,11 @@ def extract(
         with warnings.catch_warnings(record=True) as caught, _progress() as progress:
             warnings.simplefilter("always", BadFrameWarning)
             task = progress.add_task(f"extract {session.name}", total=len(session))
-            rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
-                                    pool=pool)
+            try:
+                rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
+                                        pool=pool)
+            except WorkerError as exc:
+                _fail(str(exc))
     bad: list[str] = []
     for w in caught:
         if issubclass(w.category, BadFrameWarning):
@@ -172,7 +175,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
     from contact_viz.model.model_file import params_mismatch
     from contact_viz.io.session import open_session
-    from contact_viz.pipeline.workers import DEFAULT_PROCESSES
+    from contact_viz.pipeline.parallel import DEFAULT_PROCESSES
 
     keep_freed_memory()
     out = []
