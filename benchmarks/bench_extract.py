@@ -17,7 +17,12 @@ before any start-up or output.
 libraries (`contact-viz --help`, numpy, PIL), so the session's files come from disk while the
 code does not: the situation of a session recorded earlier, or larger than memory.
 
+--compare SRC [SRC ...] instead A/B-tests versions of the package: the extract command of each
+source tree on the longer session, one invocation of each in turn, --repeats rounds (how the
+home-made code was weighed against library calls, issue 11).
+
 Run: .venv/bin/python benchmarks/bench_extract.py [--frames 300] [--loops 4] [--repeats 3] [--cold]
+     .venv/bin/python benchmarks/bench_extract.py --compare A/src B/src [--repeats 5] [--extract-options '--processes 1']
 """
 
 from __future__ import annotations
@@ -45,10 +50,33 @@ def decode_once(session: Path) -> float:
     return time.perf_counter() - t0
 
 
-def run_extract(session: Path, out: Path, *options: str) -> float:
+def run_extract(session: Path, out: Path, *options: str, src: Path | None = None) -> float:
+    """Seconds of one `contact-viz extract` in a fresh process (of the package in ``src``, when given)."""
+    env = None if src is None else {**os.environ, "PYTHONPATH": str(src)}
     t0 = time.perf_counter()
-    subprocess.run([*CLI, "extract", str(session), "-o", str(out), *options], check=True, capture_output=True)
+    subprocess.run([*CLI, "extract", str(session), "-o", str(out), *options], check=True, capture_output=True, env=env)
     return time.perf_counter() - t0
+
+
+def compare_sources(session: Path, sources: list[Path], repeats: int, workdir: Path, options: list[str]) -> None:
+    """A/B: the whole extract command of each source tree (its ``src`` directory on PYTHONPATH),
+    one invocation of each in turn, ``repeats`` rounds; medians, each tree's gain over the first,
+    and whether all wrote the same features CSV."""
+    runs: dict[Path, list[float]] = {src: [] for src in sources}
+    outputs: dict[Path, bytes] = {}
+    for _ in range(repeats):
+        for k, src in enumerate(sources):
+            out = workdir / f"ab-{k}.csv"
+            runs[src].append(run_extract(session, out, *options, src=src))
+            outputs[src] = out.read_bytes()
+    first = statistics.median(runs[sources[0]])
+    print(f"{session.name}: extract {' '.join(options)}, medians of {repeats} interleaved invocations")
+    for src in sources:
+        median = statistics.median(runs[src])
+        print(f"  {src}: {median:.2f} s, {100 * (first - median) / first:+.1f}% vs the first; runs "
+              + " ".join(f"{v:.2f}" for v in runs[src]))
+    same = len(set(outputs.values())) == 1
+    print(f"  features CSV identical across trees: {same}")
 
 
 def drop_page_cache() -> None:
@@ -153,6 +181,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cold", action="store_true", help="drop the page cache before every run (root)")
     parser.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "contact-viz-bench")
+    parser.add_argument("--compare", type=Path, nargs="+", metavar="SRC",
+                        help="instead: A/B the extract command of these source trees (each a src/ directory put "
+                        "on PYTHONPATH) on the longer session, interleaved, --repeats rounds")
+    parser.add_argument("--extract-options", default="", help="with --compare: options passed to extract, "
+                        "e.g. '--processes 1'")
     parser.add_argument("--parts-of", type=Path, help=argparse.SUPPRESS)  # the child of parts_per_frame
     args = parser.parse_args()
     if args.parts_of is not None:
@@ -167,6 +200,10 @@ def main() -> None:
         t0 = time.perf_counter()
         generate_session(session, SynthParams(phantom="cup", frames=args.frames, seed=0), overwrite=True)
         print(f"  synth: {(time.perf_counter() - t0) / args.frames:.3f} s/frame at 1920x1080")
+    if args.compare:
+        longer = looped_session(session, args.loops) if args.loops > 1 else session
+        compare_sources(longer, args.compare, args.repeats, args.workdir, args.extract_options.split())
+        return
     measure(session, args.frames, args.repeats, args.cold, args.workdir)
     if args.loops > 1 and not args.cold:  # linked frames are read from disk once, then cached
         measure(looped_session(session, args.loops), args.loops * args.frames, args.repeats, False, args.workdir)
