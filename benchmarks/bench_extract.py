@@ -22,7 +22,8 @@ source tree on the longer session, one invocation of each in turn, --repeats rou
 home-made code was weighed against library calls, issue 11).
 
 Run: .venv/bin/python benchmarks/bench_extract.py [--frames 300] [--loops 4] [--repeats 3] [--cold]
-     .venv/bin/python benchmarks/bench_extract.py --compare A/src B/src [--repeats 5] [--extract-options '--processes 1']
+     .venv/bin/python benchmarks/bench_extract.py --compare A/src B/src@B/.venv/bin/python [--repeats 5]
+         [--extract-options '--processes 1']
 """
 
 from __future__ import annotations
@@ -50,20 +51,24 @@ def decode_once(session: Path) -> float:
     return time.perf_counter() - t0
 
 
-def run_extract(session: Path, out: Path, *options: str, src: Path | None = None) -> float:
-    """Seconds of one `contact-viz extract` in a fresh process (of the package in ``src``, when given)."""
-    env = None if src is None else {**os.environ, "PYTHONPATH": str(src)}
+def run_extract(session: Path, out: Path, *options: str, src: str | None = None) -> float:
+    """Seconds of one `contact-viz extract` in a fresh process; ``src``: "SRC" or "SRC@PYTHON",
+    the package's source directory (put on PYTHONPATH) and the interpreter to run it with."""
+    cli, env = CLI, None
+    if src is not None:
+        path, _, python = src.partition("@")
+        cli, env = [python or sys.executable, *CLI[1:]], {**os.environ, "PYTHONPATH": path}
     t0 = time.perf_counter()
-    subprocess.run([*CLI, "extract", str(session), "-o", str(out), *options], check=True, capture_output=True, env=env)
+    subprocess.run([*cli, "extract", str(session), "-o", str(out), *options], check=True, capture_output=True, env=env)
     return time.perf_counter() - t0
 
 
-def compare_sources(session: Path, sources: list[Path], repeats: int, workdir: Path, options: list[str]) -> None:
+def compare_sources(session: Path, sources: list[str], repeats: int, workdir: Path, options: list[str]) -> None:
     """A/B: the whole extract command of each source tree (its ``src`` directory on PYTHONPATH),
     one invocation of each in turn, ``repeats`` rounds; medians, each tree's gain over the first,
     and whether all wrote the same features CSV."""
-    runs: dict[Path, list[float]] = {src: [] for src in sources}
-    outputs: dict[Path, bytes] = {}
+    runs: dict[str, list[float]] = {src: [] for src in sources}
+    outputs: dict[str, bytes] = {}
     for _ in range(repeats):
         for k, src in enumerate(sources):
             out = workdir / f"ab-{k}.csv"
@@ -181,9 +186,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cold", action="store_true", help="drop the page cache before every run (root)")
     parser.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "contact-viz-bench")
-    parser.add_argument("--compare", type=Path, nargs="+", metavar="SRC",
+    parser.add_argument("--compare", nargs="+", metavar="SRC[@PYTHON]",
                         help="instead: A/B the extract command of these source trees (each a src/ directory put "
-                        "on PYTHONPATH) on the longer session, interleaved, --repeats rounds")
+                        "on PYTHONPATH, run by PYTHON if given) on the longer session, interleaved, --repeats rounds")
     parser.add_argument("--extract-options", default="", help="with --compare: options passed to extract, "
                         "e.g. '--processes 1'")
     parser.add_argument("--parts-of", type=Path, help=argparse.SUPPRESS)  # the child of parts_per_frame

@@ -59,7 +59,7 @@ class ChunkTask(Protocol):
 
 
 class WorkerError(RuntimeError):
-    """A worker process died (killed, out of memory) before delivering its results."""
+    """A worker process died (killed, out of memory, its start-up failed) before delivering its results."""
 
 
 def chunk_bounds(n_items: int, chunk_size: int) -> list[tuple[int, int]]:
@@ -155,25 +155,33 @@ class ProcessPool:
                 if progress is not None:
                     progress(done)
             return results
-        futures = {self._executor.submit(fn, item): k for k, item in enumerate(items)}
+        futures: dict[cf.Future, int] = {}
         results = [None] * len(items)
+        k = None
         try:
+            for j, item in enumerate(items):
+                futures[self._executor.submit(fn, item)] = j
             for future in cf.as_completed(futures):
                 k = futures[future]
-                try:
-                    results[k] = future.result()
-                except BrokenProcessPool as exc:
-                    raise WorkerError(f"a worker process died (killed, or out of memory) while computing "
-                                      f"{describe(k)}; the pool was stopped") from exc
+                results[k] = future.result()
                 done += sizes[k]
                 if progress is not None:
                     progress(done)
+        except BrokenProcessPool as exc:
+            self._stop(futures)
+            where = "" if k is None else f" while computing {describe(k)}"
+            raise WorkerError(f"a worker process died (killed, out of memory, or its start-up failed){where}; "
+                              "the pool was stopped") from exc
         except BaseException:
-            for future in futures:
-                future.cancel()
-            self.close()  # a failed pool is not reused: its workers may be busy or gone
+            self._stop(futures)
             raise
         return results
+
+    def _stop(self, futures) -> None:
+        """After a failure: cancel what has not started and close (a failed pool is not reused)."""
+        for future in futures:
+            future.cancel()
+        self.close()
 
 
 def _short(item: object) -> str:
