@@ -74,6 +74,7 @@ def compare_sources(session: Path, sources: list[str], repeats: int, workdir: Pa
             out = workdir / f"ab-{k}.csv"
             runs[src].append(run_extract(session, out, *options, src=src))
             outputs[src] = out.read_bytes()
+            print(f"  run {len(runs[src])}: {src}: {runs[src][-1]:.2f} s", flush=True)
     first = statistics.median(runs[sources[0]])
     print(f"{session.name}: extract {' '.join(options)}, medians of {repeats} interleaved invocations")
     for src in sources:

@@ -25,7 +25,8 @@ API
 ``run_chunks(task, n_items, *, chunk_size, processes, progress=None, initializer=None)``
     ``map_chunks`` in a pool of its own (no more processes than chunks).
 
-Both ``map`` calls call ``progress(n)`` in the caller with the number of items done so far.
+``fn``/``task`` is pickled once and unpickled once in each worker (not once per item), so it
+may carry an opened session. Both ``map`` calls call ``progress(n)`` in the caller with the number of items done so far.
 An exception raised by ``fn``/``task`` in a worker is raised again in the caller, as it is
 (its worker-side traceback is its ``__cause__``), exactly as with ``processes=1``; a worker
 that dies (killed, out of memory) raises :class:`WorkerError`. Either way, and on Ctrl-C
@@ -40,7 +41,9 @@ import concurrent.futures as cf
 import importlib
 import multiprocessing
 import os
+import pickle
 import signal
+import uuid
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol, TypeVar
@@ -82,6 +85,36 @@ def _start_worker(initializer: Callable[[], object] | None, preload: Sequence[st
 
 def _started() -> None:
     """A no-op job: submitting one per worker makes the executor start them all now."""
+
+
+_SHARED: dict[str, Any] = {}  # in a worker: the functions of the jobs it has seen, unpickled once each
+
+
+class _Shared:
+    """A function (or task) pickled once in the caller and unpickled once per worker, not once
+    per call: an opened session takes longer to unpickle (its file paths) than a chunk of frames
+    takes to compute on a loaded machine."""
+
+    def __init__(self, fn: Callable[..., Any]) -> None:
+        self.fn: Callable[..., Any] | None = fn
+        self.key = uuid.uuid4().hex
+        self.payload = pickle.dumps(fn, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def __getstate__(self) -> tuple[str, bytes]:
+        return self.key, self.payload
+
+    def __setstate__(self, state: tuple[str, bytes]) -> None:
+        self.key, self.payload = state
+        self.fn = None
+
+    def __call__(self, *args: Any) -> Any:
+        fn = self.fn
+        if fn is None:
+            fn = _SHARED.get(self.key)
+            if fn is None:
+                _SHARED.clear()  # the previous job's function is not needed any more
+                fn = _SHARED[self.key] = pickle.loads(self.payload)
+        return fn(*args)
 
 
 class _Chunk:
@@ -159,8 +192,9 @@ class ProcessPool:
         results = [None] * len(items)
         k = None
         try:
+            shared = _Shared(fn)
             for j, item in enumerate(items):
-                futures[self._executor.submit(fn, item)] = j
+                futures[self._executor.submit(shared, item)] = j
             for future in cf.as_completed(futures):
                 k = futures[future]
                 results[k] = future.result()
