@@ -126,7 +126,7 @@ def extract(
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     for message in bad:
         typer.secho(f"warning: {message}", fg=typer.colors.YELLOW, err=True)
-    write_features(rows, output, run_config(session, params, label_params))
+    write_features(rows, output, run_config(session, patch_params=params, label_params=label_params))
     found = sum(1 for r in rows if r["distance_m"] != "")
     typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {len(bad)} unreadable")
     if len(bad) == len(rows):
@@ -173,7 +173,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     from contact_viz.pipeline.allocator import keep_freed_memory
     from contact_viz.errors import SessionError
     from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
-    from contact_viz.model.model_file import params_mismatch
+    from contact_viz.model.model_file import check_params
     from contact_viz.io.session import open_session
     from contact_viz.pipeline.parallel import DEFAULT_PROCESSES
 
@@ -183,10 +183,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
         try:
             if source.is_file():
                 file_params, name = read_features_config(source)
-                diff = params_mismatch(params, file_params)
-                if diff:
-                    _fail(f"{source}: features were computed with other patch parameters than the model's "
-                          f"({'; '.join(diff)}); re-extract them with the model's parameters")
+                check_params(params, file_params, str(source))
                 rows = read_features(source)
             else:
                 session = open_session(source, object_id=object_id, label_params=label_params,
@@ -269,11 +266,9 @@ def evaluate(
     cache_dir: CacheDir = None,
 ) -> None:
     """Score held-out sessions: the Table-1 metrics per session and their macro mean."""
-    import csv
-
-    from contact_viz.io.atomic import atomic_write
     from contact_viz.model.evaluation import PER_FRAME_COLUMNS, metrics_table, per_frame_rows, score_session
     from contact_viz.model.metrics import format_table
+    from contact_viz.paper.tables import write_per_frame
 
     model, features = _model_and_features(model_path, test_sessions, object_id, cache_dir)
     try:
@@ -290,10 +285,7 @@ def evaluate(
     if latex:
         typer.echo("\n" + format_table(table, style="latex"))
     if per_frame is not None:
-        with atomic_write(per_frame, newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=PER_FRAME_COLUMNS)
-            writer.writeheader()
-            writer.writerows(per_frame_rows(scores))
+        write_per_frame(per_frame, PER_FRAME_COLUMNS, per_frame_rows(scores))
     if json_out is not None:
         from contact_viz import __version__
         from contact_viz.io.jsonfile import write_json
@@ -313,18 +305,13 @@ def predict(
     cache_dir: CacheDir = None,
 ) -> None:
     """Contact posteriors for a session, with or without labels."""
-    import csv
-
-    from contact_viz.io.atomic import atomic_write
     from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
+    from contact_viz.paper.tables import write_per_frame
 
     model, (features,) = _model_and_features(model_path, [session_dir], object_id, cache_dir)
     scores = score_session(model.predict_proba, model.threshold, features.name, features.frames,
                            features.signal, features.labels)
-    with atomic_write(output, newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=PER_FRAME_COLUMNS)
-        writer.writeheader()
-        writer.writerows(per_frame_rows([scores]))
+    write_per_frame(output, PER_FRAME_COLUMNS, per_frame_rows([scores]))
     typer.echo(f"{output}: {len(scores.frames)} frames, {int(scores.predicted.sum())} predicted contact "
                f"(threshold {model.threshold:.4f})")
 
@@ -379,7 +366,7 @@ def view(
 
             model = load_model(model_path)
             if params_file is not None:
-                check_params(model, params, str(params_file))
+                check_params(model.patch_params, params, str(params_file))
             params = model.patch_params
         session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
     except (SessionError, ValueError) as exc:

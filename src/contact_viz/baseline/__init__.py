@@ -59,6 +59,8 @@ import numpy as np
 
 from contact_viz.io.atomic import atomic_write
 from contact_viz.model.hmm import select_f1_threshold
+from contact_viz.model.hmm import sigmoid as _sigmoid
+from contact_viz.params import check_fields, checked
 from contact_viz.params import from_dict as _params_from_dict
 from contact_viz.params import to_dict as _params_to_dict
 from contact_viz.geometry.tooltip import TipParams, crop_centered, tool_tip_xy
@@ -112,64 +114,34 @@ class BaselineParams:
     """Settings of the RGB baseline; defaults reproduce Yang et al. as described in the paper."""
 
     model_name: str = "efficientnet-b3"  # efficientnet-pytorch architecture, efficientnet-b0..b8
-    width_coefficient: float | None = None  # channel-width multiplier override (None = the architecture's), -
-    depth_coefficient: float | None = None  # layer-count multiplier override (None = the architecture's), -
+    # channel-width multiplier override (None = the architecture's), -
+    width_coefficient: float | None = checked(None, gt=0)
+    # layer-count multiplier override (None = the architecture's), -
+    depth_coefficient: float | None = checked(None, gt=0)
     # batch-norm running-statistics update weight per step, torch convention (None = efficientnet-pytorch's 0.01), -
-    bn_momentum: float | None = None
-    crop_px: int = 234  # side of the square input crop centred on the tool tip, px
-    dropout: float = 0.3  # dropout probability before the two-class linear layer, -
-    lr: float = 1e-4  # Adam learning rate, -
-    weight_decay: float = 1e-4  # Adam weight decay (L2 penalty), -
-    epochs: int = 10  # passes over each fold's training frames (not reported by Yang et al.), count
-    batch_size: int = 16  # training batch, frames
-    eval_batch_size: int = 32  # inference batch, frames
-    rotation_deg: float = 20.0  # random rotation drawn from U(-rotation_deg, rotation_deg), deg
-    hflip_p: float = 0.5  # probability of a horizontal flip, -
-    color_jitter: float = 0.5  # brightness, contrast and saturation jitter factor, -
-    hue_jitter: float = 0.0  # hue jitter, fraction of the hue circle (<= 0.5), -
-    erasing_p: float = 0.5  # probability of random erasing, -
-    erasing_scale: tuple[float, float] = (0.02, 0.33)  # erased area range, fraction of the crop
-    seed: int = 0  # seed of weight init, shuffling, dropout and augmentation, -
+    bn_momentum: float | None = checked(None, gt=0, le=1)
+    crop_px: int = checked(234, ge=1)  # side of the square input crop centred on the tool tip, px
+    dropout: float = checked(0.3, ge=0, le=1)  # dropout probability before the two-class linear layer, -
+    lr: float = checked(1e-4, gt=0)  # Adam learning rate, -
+    weight_decay: float = checked(1e-4, ge=0)  # Adam weight decay (L2 penalty), -
+    epochs: int = checked(10, ge=1)  # passes over each fold's training frames (not reported by Yang et al.), count
+    batch_size: int = checked(16, ge=1)  # training batch, frames
+    eval_batch_size: int = checked(32, ge=1)  # inference batch, frames
+    rotation_deg: float = checked(20.0, ge=0)  # random rotation drawn from U(-rotation_deg, rotation_deg), deg
+    hflip_p: float = checked(0.5, ge=0, le=1)  # probability of a horizontal flip, -
+    color_jitter: float = checked(0.5, ge=0)  # brightness, contrast and saturation jitter factor, -
+    hue_jitter: float = checked(0.0, ge=0, le=0.5)  # hue jitter, fraction of the hue circle (<= 0.5), -
+    erasing_p: float = checked(0.5, ge=0, le=1)  # probability of random erasing, -
+    # erased area range, fraction of the crop
+    erasing_scale: tuple[float, float] = checked((0.02, 0.33), gt=0, le=1, pair=True)
+    seed: int = checked(0, ge=0)  # seed of weight init, shuffling, dropout and augmentation, -
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "erasing_scale", tuple(float(v) for v in self.erasing_scale))
-        if not isinstance(self.model_name, str) or not _MODEL_NAME.fullmatch(self.model_name):
+        check_fields(self)
+        if not _MODEL_NAME.fullmatch(self.model_name):
             raise ValueError(
                 f"BaselineParams.model_name must be efficientnet-b0 .. efficientnet-b8, got {self.model_name!r}"
             )
-        for name in ("width_coefficient", "depth_coefficient"):
-            value = getattr(self, name)
-            if value is not None and not (_is_number(value) and value > 0):
-                raise ValueError(f"BaselineParams.{name} must be None or a number > 0, got {value!r}")
-        for name in ("crop_px", "epochs", "batch_size", "eval_batch_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"BaselineParams.{name} must be a positive integer, got {value!r}")
-        if self.bn_momentum is not None and not (_is_number(self.bn_momentum) and 0 < self.bn_momentum <= 1):
-            raise ValueError(f"BaselineParams.bn_momentum must be None or in (0, 1], got {self.bn_momentum!r}")
-        for name in ("dropout", "hflip_p", "erasing_p"):
-            value = getattr(self, name)
-            if not (_is_number(value) and 0 <= value <= 1):
-                raise ValueError(f"BaselineParams.{name} must be a probability in [0, 1], got {value!r}")
-        for name in ("lr", "weight_decay", "rotation_deg", "color_jitter"):
-            value = getattr(self, name)
-            if not (_is_number(value) and value >= 0):
-                raise ValueError(f"BaselineParams.{name} must be a finite number >= 0, got {value!r}")
-        if not self.lr > 0:
-            raise ValueError(f"BaselineParams.lr must be > 0, got {self.lr!r}")
-        if not (_is_number(self.hue_jitter) and 0 <= self.hue_jitter <= 0.5):
-            raise ValueError(f"BaselineParams.hue_jitter must be in [0, 0.5], got {self.hue_jitter!r}")
-        lo, hi = self.erasing_scale if len(self.erasing_scale) == 2 else (math.nan, math.nan)
-        if not (0 < lo <= hi <= 1):
-            raise ValueError(
-                f"BaselineParams.erasing_scale must be (lo, hi) with 0 < lo <= hi <= 1, got {self.erasing_scale!r}"
-            )
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"BaselineParams.seed must be an integer >= 0, got {self.seed!r}")
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 # --------------------------------------------------------------------------------------------
@@ -236,8 +208,6 @@ def extract_crops(
     inputs reads it back without decoding anything. Without it they are held in memory
     (crop_px**2 * 3 bytes per frame: 164 kB at 234 px). ``progress(done, total)`` after each frame.
     """
-    if isinstance(crop_px, bool) or not isinstance(crop_px, int) or crop_px < 1:
-        raise ValueError(f"crop_px: expected a positive integer number of px, got {crop_px!r}")
     n_frames = len(session)
     height, width = session.image_size
     labels = np.array(session.labels, dtype=np.int8)
@@ -423,10 +393,6 @@ def raw_scores(model: torch.nn.Module, crops: np.ndarray, batch_size: int, devic
 # --------------------------------------------------------------------------------------------
 # Platt scaling
 # --------------------------------------------------------------------------------------------
-
-
-def _sigmoid(z: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * z))  # = 1 / (1 + exp(-z)), without overflow
 
 
 @dataclass(frozen=True)

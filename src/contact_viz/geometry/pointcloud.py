@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contact_viz.params import PatchParams
+from contact_viz.params import PatchParams, check_fields, checked
 from contact_viz.geometry.patch import LAYER_INTERIOR, PatchResult
 
 __all__ = [
@@ -45,17 +45,13 @@ UINT16_MAX = np.iinfo(np.uint16).max
 class CloudParams:
     """Density of the viewer's point cloud."""
 
-    near_radius_px: int = 40  # full density in the square of half-side this around the patch centre, px (0 = none)
-    stride_px: int = 6  # elsewhere keep every stride-th pixel along rows and columns, px (1 = all)
-    voxel_m: float = 0.0015  # then merge those points into voxels of this edge, m (0 = no merging)
+    # full density in the square of half-side this around the patch centre, px (0 = none)
+    near_radius_px: int = checked(40, ge=0)
+    stride_px: int = checked(6, ge=1)  # elsewhere keep every stride-th pixel along rows and columns, px (1 = all)
+    voxel_m: float = checked(0.0015, ge=0)  # then merge those points into voxels of this edge, m (0 = no merging)
 
     def __post_init__(self) -> None:
-        if isinstance(self.near_radius_px, bool) or not isinstance(self.near_radius_px, int) or self.near_radius_px < 0:
-            raise ValueError(f"CloudParams.near_radius_px must be an integer >= 0 (px), got {self.near_radius_px!r}")
-        if isinstance(self.stride_px, bool) or not isinstance(self.stride_px, int) or self.stride_px < 1:
-            raise ValueError(f"CloudParams.stride_px must be an integer >= 1 (px), got {self.stride_px!r}")
-        if not (np.isfinite(self.voxel_m) and self.voxel_m >= 0):
-            raise ValueError(f"CloudParams.voxel_m must be a finite number >= 0 (m), got {self.voxel_m!r}")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
@@ -137,8 +133,6 @@ def backproject(
         points_m (N, 3) float32 and yx (N, 2) int64 (row, column of each point), row-major order.
     """
     _check_depth(depth_m)
-    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
-        raise ValueError(f"stride must be a positive integer (px), got {stride!r}")
     height, width = depth_m.shape
     x0, y0, x1, y1 = (0, 0, width, height) if box_xyxy is None else _clip_box(box_xyxy, width, height)
     # first multiple of stride at or after the box start
@@ -305,8 +299,6 @@ def depth_preview(depth_m: np.ndarray, step: int, units_per_m: float) -> np.ndar
     Returns (ceil(H / step), ceil(W / step)) uint16.
     """
     _check_depth(depth_m)
-    if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
-        raise ValueError(f"step must be a positive integer (px), got {step!r}")
     scaled = depth_m[::step, ::step] * np.float32(units_per_m)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(scaled) & (scaled > 0) & (scaled <= UINT16_MAX)

@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from contact_viz.params import check_fields, checked
 
 __all__ = [
     "DEPTH_METHODS",
@@ -55,47 +56,30 @@ _BLOCK_STEP = 2  # block sides are odd
 class SGBMParams:
     """Semi-global matching settings; ``None`` fields are sized from the image width by :meth:`resolve`."""
 
-    num_disparities: int | None = None  # disparity search range, px (multiple of 16); None = from the width
-    disparity_range_fraction: float = 0.125  # when num_disparities is None: range = this * width (rounded up to 16)
+    # disparity search range, px (multiple of 16); None = from the width
+    num_disparities: int | None = checked(None, ge=SUBPIXEL, lt=_MAX_CODE // SUBPIXEL + 1, multiple_of=SUBPIXEL)
+    # when num_disparities is None: range = this * width (rounded up to 16)
+    disparity_range_fraction: float = checked(0.125, gt=0, le=1)
     min_disparity: int = 0  # smallest disparity searched, px
-    block_size: int | None = None  # matching block side, px (odd, >= 3); None = from the width
-    width_per_block_px: float = 320.0  # when block_size is None: block = width / this, as an odd number >= 3
-    p1_factor: int = 8  # P1 = p1_factor * channels * block^2: penalty for a 1 px disparity change
-    p2_factor: int = 32  # P2 = p2_factor * channels * block^2: penalty for larger disparity jumps
+    block_size: int | None = checked(None, ge=1, odd=True)  # matching block side, px (odd, >= 3); None = from the width
+    # when block_size is None: block = width / this, as an odd number >= 3
+    width_per_block_px: float = checked(320.0, gt=0)
+    p1_factor: int = checked(8, gt=0)  # P1 = p1_factor * channels * block^2: penalty for a 1 px disparity change
+    p2_factor: int = 32  # P2 = p2_factor * channels * block^2: penalty for larger disparity jumps (> p1_factor)
     uniqueness_ratio: int = 10  # best cost must beat the second best by this margin, %
     speckle_window_size: int = 100  # largest connected speckle region removed, px (0 = no speckle filter)
     speckle_range: int = 2  # largest disparity step inside one connected region, px
     disp12_max_diff: int = 1  # OpenCV's built-in left-right tolerance, px (-1 = off)
     lr_check: bool = True  # run the right-view match and drop pixels failing the left-right check
-    lr_max_diff_px: float = 1.0  # left-right consistency tolerance, px
-    mode: str = "sgbm_3way"  # OpenCV mode: sgbm, sgbm_3way (fast), hh (full 8-path, slow), hh4
-    downscale: int = 1  # match at 1/downscale resolution, then upsample the disparity (faster, coarser)
+    lr_max_diff_px: float = checked(1.0, ge=0)  # left-right consistency tolerance, px
+    mode: str = checked("sgbm_3way", choices=_MODES)  # OpenCV mode: sgbm, sgbm_3way (fast), hh (full 8-path, slow), hh4
+    downscale: int = checked(1, ge=1)  # match at 1/downscale resolution, then upsample the disparity (faster, coarser)
 
     def __post_init__(self) -> None:
-        if self.mode not in _MODES:
-            raise ValueError(f"SGBMParams.mode must be one of {sorted(_MODES)}, got {self.mode!r}")
-        if self.num_disparities is not None and (
-            self.num_disparities < SUBPIXEL or self.num_disparities % SUBPIXEL
-            or self.num_disparities * SUBPIXEL >= _MAX_CODE
-        ):
+        check_fields(self)
+        if self.p2_factor <= self.p1_factor:
             raise ValueError(
-                f"SGBMParams.num_disparities must be a positive multiple of 16 below 4096, got {self.num_disparities}"
-            )
-        if self.block_size is not None and (self.block_size < 1 or self.block_size % 2 == 0):
-            raise ValueError(f"SGBMParams.block_size must be an odd number >= 1, got {self.block_size}")
-        if not 0 < self.disparity_range_fraction <= 1:
-            raise ValueError(
-                f"SGBMParams.disparity_range_fraction must be in (0, 1], got {self.disparity_range_fraction}"
-            )
-        if not self.width_per_block_px > 0:
-            raise ValueError(f"SGBMParams.width_per_block_px must be positive, got {self.width_per_block_px}")
-        if not self.lr_max_diff_px >= 0:
-            raise ValueError(f"SGBMParams.lr_max_diff_px must be >= 0, got {self.lr_max_diff_px}")
-        if isinstance(self.downscale, bool) or not isinstance(self.downscale, int) or self.downscale < 1:
-            raise ValueError(f"SGBMParams.downscale must be a positive integer, got {self.downscale!r}")
-        if self.p1_factor <= 0 or self.p2_factor <= self.p1_factor:
-            raise ValueError(
-                f"SGBMParams needs 0 < p1_factor < p2_factor, got {self.p1_factor} and {self.p2_factor}"
+                f"SGBMParams needs p1_factor < p2_factor, got {self.p1_factor} and {self.p2_factor}"
             )
 
     def resolve(self, width_px: int) -> SGBMParams:

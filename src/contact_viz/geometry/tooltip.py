@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from contact_viz.params import check_fields, checked
+
 __all__ = ["TipParams", "crop_centered", "tool_tip_xy"]
 
 _CONNECTIVITY = 8  # pixel connectivity of mask components and of runs along the border
@@ -46,14 +48,11 @@ _CONNECTIVITY = 8  # pixel connectivity of mask components and of runs along the
 class TipParams:
     """Settings of the tool-tip estimate (see the module docstring for the rule)."""
 
-    min_area_px: int = 20  # smallest largest-component area that counts as a tool, px
-    tip_band_px: float = 2.0  # pixels this close to the largest entry distance form the tip, px
+    min_area_px: int = checked(20, ge=1)  # smallest largest-component area that counts as a tool, px
+    tip_band_px: float = checked(2.0, ge=0)  # pixels this close to the largest entry distance form the tip, px
 
     def __post_init__(self) -> None:
-        if isinstance(self.min_area_px, bool) or not isinstance(self.min_area_px, int) or self.min_area_px < 1:
-            raise ValueError(f"TipParams.min_area_px must be a positive integer (px), got {self.min_area_px!r}")
-        if not (isinstance(self.tip_band_px, (int, float)) and math.isfinite(self.tip_band_px)) or self.tip_band_px < 0:
-            raise ValueError(f"TipParams.tip_band_px must be a finite number >= 0 (px), got {self.tip_band_px!r}")
+        check_fields(self)
 
 
 def _largest_component(mask: np.ndarray) -> np.ndarray | None:
@@ -124,8 +123,6 @@ def crop_centered(image: np.ndarray, center_xy: tuple[float, float], size: int) 
     img = np.asarray(image)
     if img.ndim not in (2, 3) or img.shape[0] < 1 or img.shape[1] < 1:
         raise ValueError(f"image: expected a non-empty (H, W) or (H, W, C) array, got shape {img.shape}")
-    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
-        raise ValueError(f"size: expected a positive integer number of px, got {size!r}")
     size = int(size)
     cx, cy = (float(v) for v in center_xy)
     if not (math.isfinite(cx) and math.isfinite(cy)):

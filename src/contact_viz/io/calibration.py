@@ -201,10 +201,11 @@ def _check_principal_point(path: Path, K: np.ndarray, image_size: tuple[int, int
         )
 
 
-def _read_only(array: np.ndarray) -> np.ndarray:
-    array = np.array(array, dtype=np.float64)
-    array.flags.writeable = False
-    return array
+def read_only(array: np.ndarray, dtype: np.dtype | type | None = None) -> np.ndarray:
+    """A read-only copy of ``array`` (as ``dtype`` when given): what a calibration or a session hands out."""
+    out = np.array(array, dtype=dtype)
+    out.flags.writeable = False
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -257,7 +258,7 @@ def read_k_txt(path: str | Path) -> Calibration:
         found = f"{len(b_values)} numbers" if len(b_values) != 1 else f"{b_values[0]!r}"
         raise SessionError(path, f"expected one positive number (stereo baseline, m) on line 2, found {found}")
     _check_baseline(path, b_values[0], "line 2")
-    return Calibration(K=_read_only(K), baseline_m=float(b_values[0]))
+    return Calibration(K=read_only(K, np.float64), baseline_m=float(b_values[0]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -433,7 +434,7 @@ def read_ros_camera_info(
     baseline_m = -tx / P_right[0, 0]
     _check_baseline(right_path, baseline_m, "-Tx / fx of the right projection_matrix")
     calibration = Calibration(
-        K=_read_only(P_left[:, :3]), baseline_m=float(baseline_m),
+        K=read_only(P_left[:, :3], np.float64), baseline_m=float(baseline_m),
         disparity_offset_px=float(P_right[0, 2] - P_left[0, 2]),
     )
     identity = all(np.allclose(c["R"], np.eye(3)) and not np.any(c["D"]) for c in (left, right))
@@ -505,7 +506,8 @@ def read_opencv_stereo(path: str | Path, image_size: tuple[int, int] | None = No
                 "(rectified cameras), or K1 with T and rectified: 1"
             )
         _check_principal_point(path, K, size)
-        calibration = Calibration(K=_read_only(K), baseline_m=float(baseline_m), disparity_offset_px=float(offset))
+        calibration = Calibration(K=read_only(K, np.float64), baseline_m=float(baseline_m),
+                                  disparity_offset_px=float(offset))
         return StereoCalibration(calibration, (path,), "opencv", declared, None)
 
     if K2 is None:
@@ -538,7 +540,7 @@ def read_opencv_stereo(path: str | Path, image_size: tuple[int, int] | None = No
         )
     lx, ly = _maps(K1, D1, R1, P1r, size)
     rx, ry = _maps(K2, D2, R2, P2r, size)
-    calibration = Calibration(K=_read_only(P1r[:, :3]), baseline_m=float(-P2r[0, 3] / P2r[0, 0]))
+    calibration = Calibration(K=read_only(P1r[:, :3], np.float64), baseline_m=float(-P2r[0, 3] / P2r[0, 0]))
     return StereoCalibration(calibration, (path,), "opencv", declared, Rectification(size, lx, ly, rx, ry))
 
 

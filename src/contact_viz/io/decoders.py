@@ -8,7 +8,7 @@ from __future__ import annotations
 import contextlib
 import io
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
@@ -18,9 +18,9 @@ from PIL import Image
 from contact_viz.errors import SessionError
 from contact_viz.io.npy_rows import read_npy_rows
 from contact_viz.io.palette_png import is_palette_png, palette_indices
+from contact_viz.params import MM_PER_M
 
 
-MM_PER_M = 1000.0  # millimetres per metre (uint16 depth PNGs hold millimetres)
 # Exceptions that mean "this file could not be decoded" (PIL raises SyntaxError for some broken PNGs).
 DECODE_ERRORS = (OSError, ValueError, EOFError, SyntaxError, zlib.error, cv2.error)
 
@@ -38,6 +38,35 @@ def _read_bytes(path: Path, what: str) -> np.ndarray:
     return data
 
 
+def _decode(path: Path, what: str, decode: Callable[[np.ndarray], np.ndarray | None]) -> np.ndarray:
+    """``decode`` applied to the file's bytes; a missing, unreadable, empty or undecodable file is one
+    SessionError naming the file and ``what`` was expected."""
+    data = _read_bytes(path, what)
+    try:
+        image = decode(data)
+    except DECODE_ERRORS as exc:
+        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
+    if image is None or image.size == 0:
+        raise SessionError(path, f"expected {what}, could not decode it")
+    return image
+
+
+def _imdecode_unchanged(data: np.ndarray) -> np.ndarray | None:
+    return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+
+
+def _mask_ids(data: np.ndarray) -> np.ndarray | None:
+    """A mask file's pixel values: palette indices of a palettized PNG, else OpenCV's decode."""
+    raw = data.tobytes()
+    if not is_palette_png(raw):
+        return _imdecode_unchanged(data)
+    ids = palette_indices(raw)
+    if ids is None:
+        with Image.open(io.BytesIO(raw)) as image:
+            ids = np.asarray(image)
+    return ids
+
+
 def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
     """Decode a tool mask PNG to (H, W) bool, True = tool.
 
@@ -46,21 +75,7 @@ def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
     nonzero (``object_id`` is then an error). Palettized PNGs are decoded to their palette
     indices (contact_viz.io.palette_png; PIL for bit depths other than 8), the rest by OpenCV.
     """
-    what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
-    data = _read_bytes(path, what)
-    try:
-        raw = data.tobytes()
-        if is_palette_png(raw):
-            ids = palette_indices(raw)
-            if ids is None:
-                with Image.open(io.BytesIO(raw)) as image:
-                    ids = np.asarray(image)
-        else:
-            ids = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    except DECODE_ERRORS as exc:
-        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
-    if ids is None:
-        raise SessionError(path, f"expected {what}, could not decode it")
+    ids = _decode(path, "a tool mask PNG (palettized object ids, or 8-bit 0/255)", _mask_ids)
     if ids.ndim == 2:
         return ids == object_id if object_id is not None else ids != 0
     if ids.ndim == 3 and ids.shape[2] in (3, 4):
@@ -136,13 +151,7 @@ def read_depth_m(path: Path) -> np.ndarray:
         return depth
     if suffix == ".png":
         what = "a 16-bit single-channel depth PNG in millimetres"
-        data = _read_bytes(path, what)
-        try:
-            raw = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-        except DECODE_ERRORS as exc:
-            raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
-        if raw is None:
-            raise SessionError(path, f"expected {what}, could not decode it")
+        raw = _decode(path, what, _imdecode_unchanged)
         if raw.dtype != np.uint16 or raw.ndim != 2:
             channels = 1 if raw.ndim == 2 else raw.shape[2]
             raise SessionError(
@@ -182,23 +191,35 @@ def read_disparity_px(path: Path) -> np.ndarray:
 _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.10 decodes straight to RGB
 
 
+def _imdecode_rgb(data: np.ndarray) -> np.ndarray | None:
+    if _IMREAD_RGB is not None:
+        return cv2.imdecode(data, _IMREAD_RGB)
+    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    return None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
 def read_rgb(path: Path) -> np.ndarray:
     """Decode a colour image to (H, W, 3) uint8 RGB (grey images are expanded, alpha dropped)."""
-    what = "a colour image (PNG or JPEG)"
-    data = _read_bytes(path, what)
-    try:
-        if _IMREAD_RGB is not None:
-            rgb = cv2.imdecode(data, _IMREAD_RGB)
-        else:
-            bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
-            rgb = None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    except DECODE_ERRORS as exc:
-        raise SessionError(path, f"expected {what}, could not decode it ({type(exc).__name__}: {exc})") from exc
-    if rgb is None or rgb.size == 0:
-        raise SessionError(path, f"expected {what}, could not decode it")
+    rgb = _decode(path, "a colour image (PNG or JPEG)", _imdecode_rgb)
     if rgb.dtype != np.uint8:  # 16-bit colour PNGs: keep the high byte
         rgb = (rgb >> 8).astype(np.uint8)
     return rgb
 
 
 # --------------------------------------------------------------------------------------------
+
+
+def read_image_size(path: Path) -> tuple[int, int]:
+    """(height, width) px of a left image from its header (no full decode); the session reader and the
+    importers take the session's image size from it."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except DECODE_ERRORS as exc:
+        raise SessionError(
+            path,
+            f"expected a readable PNG/JPEG left image to take the image size from ({type(exc).__name__}: {exc})",
+        ) from exc
+    if width <= 0 or height <= 0:
+        raise SessionError(path, f"expected a non-empty left image, found {width}x{height} px")
+    return height, width

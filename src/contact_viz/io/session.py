@@ -36,15 +36,14 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
-from contact_viz.io.calibration import Calibration, Rectification, StereoCalibration, read_calibration
+from contact_viz.io.calibration import Calibration, Rectification, StereoCalibration, read_calibration, read_only
 from contact_viz.errors import SessionError, SessionWarning
 from contact_viz.io.prefetch import prefetched
 from contact_viz.params import LabelParams
 from contact_viz.io.decoders import (
-    DECODE_ERRORS,
     _check_image_shape,
+    read_image_size,
     read_depth_m,
     read_depth_rows_m,
     read_disparity_px,
@@ -186,11 +185,11 @@ class Session:
         self.rectification: Rectification | None = stereo.rectification if stereo is not None else None
         self.stems = stems
         self.image_size = image_size
-        self.timestamps_s = _read_only(timestamps_s)
-        self.force_xyz_n = _read_only(force_xyz_n)
-        self.force_n = _read_only(force_n)
-        self.labels = _read_only(labels)
-        self.label_source = _read_only(label_source)
+        self.timestamps_s = read_only(timestamps_s)
+        self.force_xyz_n = read_only(force_xyz_n)
+        self.force_n = read_only(force_n)
+        self.labels = read_only(labels)
+        self.label_source = read_only(label_source)
         self.has_right = bool(right_files)
         self.object_id = object_id
         self.depth_source = depth_source
@@ -376,21 +375,12 @@ class Session:
         Arguments are checked now (ValueError / IndexError), not at the first ``next``.
         """
         wanted = _check_layers(layers)
-        if isinstance(prefetch, bool) or not isinstance(prefetch, int) or prefetch < 1:
-            raise ValueError(f"prefetch must be a positive integer, got {prefetch!r}")
-        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-            raise ValueError(f"workers must be a positive integer, got {workers!r}")
         order = list(range(len(self))) if indices is None else [int(i) for i in indices]
         bad = [i for i in order if not 0 <= i < len(self)]
         if bad:
             raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(self)} frames")
         return prefetched(functools.partial(self._load, layers=wanted), order, prefetch,
                           workers=min(workers, prefetch), thread_name="contact-viz-decode")
-
-
-def _read_only(array: np.ndarray) -> np.ndarray:
-    array.flags.writeable = False
-    return array
 
 
 def _check_layers(layers: Sequence[str]) -> frozenset[str]:
@@ -403,19 +393,6 @@ def _check_layers(layers: Sequence[str]) -> frozenset[str]:
     return wanted
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    """(height, width) px from an image header (no full decode)."""
-    try:
-        with Image.open(path) as image:
-            width, height = image.size
-    except DECODE_ERRORS as exc:
-        raise SessionError(
-            path,
-            f"expected a readable PNG/JPEG left image to take the image size from ({type(exc).__name__}: {exc})",
-        ) from exc
-    if width <= 0 or height <= 0:
-        raise SessionError(path, f"expected a non-empty left image, found {width}x{height} px")
-    return height, width
 
 
 def open_session(
@@ -459,7 +436,7 @@ def open_session(
     if not left_files:
         raise SessionError(left_dir, "expected rectified left frames left/<stem>.png|jpg|jpeg, found none")
     stems = sorted(left_files, key=natural_key)
-    image_size = _image_size(left_files[stems[0]])
+    image_size = read_image_size(left_files[stems[0]])
     stereo = read_calibration(root, image_size)
     mask_files = _find_masks(root, required=require_masks)
     right_dir = root / "right"

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from contact_viz.params import check_fields, checked
 from contact_viz.params import from_dict as _params_from_dict
 from contact_viz.params import to_dict as _params_to_dict
 
@@ -37,11 +38,11 @@ STATIONARY_RANK_TOL = 1e-9  # singular values below this count as zero when test
 class HMMParams:
     """Fixed (not learned) settings of the supervised HMM."""
 
-    var_floor: float = 1e-6  # lower bound on each state's emission variance, dec^2 (signal units squared)
+    # lower bound on each state's emission variance, dec^2 (signal units squared)
+    var_floor: float = checked(1e-6, gt=0)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.var_floor, (int, float)) and math.isfinite(self.var_floor) and self.var_floor > 0):
-            raise ValueError(f"HMMParams.var_floor must be a finite number > 0 (dec^2), got {self.var_floor!r}")
+        check_fields(self)
 
 
 class NotFittedError(ValueError):
@@ -150,7 +151,35 @@ def _log_or_minus_inf(value: float) -> float:
     return math.log(value) if value > 0.0 else -math.inf
 
 
-def _sigmoid(z: np.ndarray) -> np.ndarray:
+def _transitions(transmat: np.ndarray) -> tuple[float, float, float, float]:
+    """(a00, a01, a10, a11) of a 2x2 transition matrix, as Python floats."""
+    return float(transmat[0, 0]), float(transmat[0, 1]), float(transmat[1, 0]), float(transmat[1, 1])
+
+
+def _prior_log_odds(startprob: np.ndarray) -> float:
+    """log pi_1 - log pi_0: the log-odds of contact before the first observation."""
+    return _log_or_minus_inf(float(startprob[1])) - _log_or_minus_inf(float(startprob[0]))
+
+
+def _filter_step(z: float, transitions: tuple[float, float, float, float], llr: float) -> float:
+    """The filtered log-odds at frame t from those at t-1 (``z``) and frame t's emission log-likelihood ratio.
+
+    The one step of :func:`forward_filter` and :class:`StreamingFilter`, so the two agree bit for bit.
+    """
+    a00, a01, a10, a11 = transitions
+    # filtered (p0, p1) at t-1 from the log-odds, each side computed without cancellation
+    e = math.exp(-abs(z))
+    if z >= 0:
+        p1, p0 = 1.0 / (1.0 + e), e / (1.0 + e)
+    else:
+        p1, p0 = e / (1.0 + e), 1.0 / (1.0 + e)
+    # prediction A^T p, then the emission update in log-odds
+    q1 = p0 * a01 + p1 * a11
+    q0 = p0 * a00 + p1 * a10
+    return _log_or_minus_inf(q1) - _log_or_minus_inf(q0) + llr
+
+
+def sigmoid(z: np.ndarray) -> np.ndarray:
     """1 / (1 + exp(-z)) without overflow; exact 0 / 1 at -inf / +inf."""
     e = np.exp(-np.abs(z))
     return np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
@@ -182,25 +211,12 @@ def forward_filter(signal: Any, means: Any, vars: Any, transmat: Any, startprob:
     llr = emission_log_likelihood_ratio(x, means_a, vars_a)
     llr = np.where(np.isnan(llr), 0.0, llr).tolist()  # a missing observation adds no evidence
 
-    a00, a01 = float(trans_a[0, 0]), float(trans_a[0, 1])
-    a10, a11 = float(trans_a[1, 0]), float(trans_a[1, 1])
+    transitions = _transitions(trans_a)
     log_odds = [0.0] * n_frames
-    z = _log_or_minus_inf(float(start_a[1])) - _log_or_minus_inf(float(start_a[0])) + llr[0]
-    log_odds[0] = z
-    exp, log_q = math.exp, _log_or_minus_inf
+    z = log_odds[0] = _prior_log_odds(start_a) + llr[0]
     for t in range(1, n_frames):
-        # filtered (p0, p1) at t-1 from the log-odds, each side computed without cancellation
-        e = exp(-abs(z))
-        if z >= 0:
-            p1, p0 = 1.0 / (1.0 + e), e / (1.0 + e)
-        else:
-            p1, p0 = e / (1.0 + e), 1.0 / (1.0 + e)
-        # prediction A^T p, then the emission update in log-odds
-        q1 = p0 * a01 + p1 * a11
-        q0 = p0 * a00 + p1 * a10
-        z = log_q(q1) - log_q(q0) + llr[t]
-        log_odds[t] = z
-    return _sigmoid(np.asarray(log_odds, dtype=np.float64))
+        z = log_odds[t] = _filter_step(z, transitions, llr[t])
+    return sigmoid(np.asarray(log_odds, dtype=np.float64))
 
 
 def select_f1_threshold(scores: Any, labels: Any) -> float:
@@ -242,6 +258,15 @@ def select_f1_threshold(scores: Any, labels: Any) -> float:
 # --------------------------------------------------------------------------------------------
 # The supervised HMM
 # --------------------------------------------------------------------------------------------
+
+
+def _check_keys(data: dict[str, Any], expected: set[str], where: str) -> None:
+    """ValueError naming ``where`` unless ``data`` has exactly the keys ``expected``."""
+    if set(data) != expected:
+        raise ValueError(
+            f"{where}: expected keys {sorted(expected)}, "
+            f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
+        )
 
 
 def _check_sessions(
@@ -350,12 +375,8 @@ class SupervisedGaussianHMM:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SupervisedGaussianHMM:
         """Rebuild a fitted model from ``to_dict`` output; missing or unknown keys are an error."""
-        expected = {"params", "means", "vars", "transmat", "startprob", "n_frames", "transition_counts"}
-        if set(data) != expected:
-            raise ValueError(
-                f"SupervisedGaussianHMM.from_dict: expected keys {sorted(expected)}, "
-                f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
-            )
+        _check_keys(data, {"params", "means", "vars", "transmat", "startprob", "n_frames", "transition_counts"},
+                    "SupervisedGaussianHMM.from_dict")
         model = cls(_params_from_dict(HMMParams, data["params"]))
         means, vars_, transmat, startprob = _check_model(
             data["means"], data["vars"], data["transmat"], data["startprob"]
@@ -448,12 +469,8 @@ class LosoEnsemble:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LosoEnsemble:
         """Rebuild a fitted ensemble from ``to_dict`` output; missing or unknown keys are an error."""
-        expected = {"params", "session_names", "models", "threshold", "oof_posteriors"}
-        if set(data) != expected:
-            raise ValueError(
-                f"LosoEnsemble.from_dict: expected keys {sorted(expected)}, "
-                f"missing {sorted(expected - set(data))}, unknown {sorted(set(data) - expected)}"
-            )
+        _check_keys(data, {"params", "session_names", "models", "threshold", "oof_posteriors"},
+                    "LosoEnsemble.from_dict")
         n = len(data["session_names"])
         if len(data["models"]) != n or len(data["oof_posteriors"]) != n or n < 2:
             raise ValueError(
@@ -508,28 +525,19 @@ class StreamingFilter:
         x = float(x)
         if math.isinf(x):
             raise ValueError(f"x: expected a finite signal value or NaN, got {x!r}")
-        exp, log_q = math.exp, _log_or_minus_inf
         new = []
         for k, (means, vars_, trans, start) in enumerate(self._params):
             llr = float(emission_log_likelihood_ratio(np.array([x]), means, vars_)[0])
             if math.isnan(llr):
                 llr = 0.0
             if self._log_odds is None:
-                z = log_q(float(start[1])) - log_q(float(start[0])) + llr
+                z = _prior_log_odds(start) + llr
             else:
-                z = self._log_odds[k]
-                e = exp(-abs(z))
-                if z >= 0:
-                    p1, p0 = 1.0 / (1.0 + e), e / (1.0 + e)
-                else:
-                    p1, p0 = e / (1.0 + e), 1.0 / (1.0 + e)
-                q1 = p0 * float(trans[0, 1]) + p1 * float(trans[1, 1])
-                q0 = p0 * float(trans[0, 0]) + p1 * float(trans[1, 0])
-                z = log_q(q1) - log_q(q0) + llr
+                z = _filter_step(self._log_odds[k], _transitions(trans), llr)
             new.append(z)
         self._log_odds = new
         self.frames += 1
-        posteriors = _sigmoid(np.asarray(new, dtype=np.float64))
+        posteriors = sigmoid(np.asarray(new, dtype=np.float64))
         total = posteriors[0]
         for value in posteriors[1:]:  # the same order of additions as np.mean(..., axis=0) over the stack
             total = total + value

@@ -40,19 +40,15 @@ class ContactModel:
         return self.ensemble.predict_proba(signal)
 
 
-def params_mismatch(expected: PatchParams, found: PatchParams) -> list[str]:
-    """'field: expected X, found Y' for every PatchParams field that differs."""
-    a, b = to_dict(expected), to_dict(found)
-    return [f"{k}: model {a[k]!r}, features {b[k]!r}" for k in a if a[k] != b[k]]
-
-
-def check_params(model: ContactModel, found: PatchParams, where: str) -> None:
-    """Refuse features computed with other patch parameters than the model's."""
-    diff = params_mismatch(model.patch_params, found)
+def check_params(model_params: PatchParams, found: PatchParams, where: str) -> None:
+    """Refuse features computed with other patch parameters than the model's: one ValueError
+    starting with ``where`` and listing 'field: model X, features Y' for every field that differs."""
+    a, b = to_dict(model_params), to_dict(found)
+    diff = [f"{k}: model {a[k]!r}, features {b[k]!r}" for k in a if a[k] != b[k]]
     if diff:
         raise ValueError(
-            f"{where}: features were computed with other patch parameters than the model was fitted "
-            f"with ({'; '.join(diff)}); re-extract them with the model's parameters"
+            f"{where}: features were computed with other patch parameters than the model's "
+            f"({'; '.join(diff)}); re-extract them with the model's parameters"
         )
 
 

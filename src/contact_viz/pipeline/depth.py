@@ -72,8 +72,6 @@ def precompute_depth(
     """
     from contact_viz.io.session import BadFrame
 
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
     out_dir = tmp_dir = None
     if output is not None:
         out_dir = Path(output).expanduser().resolve()

@@ -10,6 +10,7 @@ process or several (:mod:`contact_viz.pipeline.parallel`); :func:`extract_featur
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import os
 import warnings
@@ -214,14 +215,17 @@ def extract_features(
     return rows
 
 
-def run_config(session: Session, params: PatchParams, label_params: LabelParams) -> dict[str, object]:
-    """The resolved configuration saved beside every result."""
-    return {
+def run_config(session: Session, **sections: object) -> dict[str, object]:
+    """The resolved configuration saved with every result (features.csv.json, the viewer's recording):
+    the package version, the session, then ``sections`` in order (a config dataclass as its dict; None left out)."""
+    config: dict[str, object] = {
         "contact_viz_version": __version__,
         "session": {"path": str(session.root.resolve()), "name": session.name, "frames": len(session)},
-        "patch_params": to_dict(params),
-        "label_params": to_dict(label_params),
     }
+    for key, value in sections.items():
+        if value is not None:
+            config[key] = to_dict(value) if dataclasses.is_dataclass(value) else value
+    return config
 
 
 def write_features(rows: Sequence[dict[str, object]], path: str | Path, config: dict[str, object]) -> Path:
@@ -286,7 +290,7 @@ def cached_features(
     if path.exists():
         return read_features(path), True
     rows = extract_features(session, params, progress=progress, processes=processes)
-    write_features(rows, path, run_config(session, params, label_params))
+    write_features(rows, path, run_config(session, patch_params=params, label_params=label_params))
     return [{k: str(v) for k, v in r.items()} for r in rows], False
 
 

@@ -31,9 +31,9 @@ import numpy as np
 from contact_viz.viz import rerun_log
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.errors import SessionError
-from contact_viz.pipeline.extract import iter_frame_results
+from contact_viz.pipeline.extract import iter_frame_results, run_config
 from contact_viz.model.hmm import StreamingFilter
-from contact_viz.params import PatchParams
+from contact_viz.params import PatchParams, check_fields, checked, to_dict
 from contact_viz.geometry.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
 from contact_viz.io.prefetch import prefetched
 from contact_viz.io.session import Session, read_rgb
@@ -56,37 +56,26 @@ _REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMR
 class DebuggerOptions:
     """What ``contact-viz view`` shows and how densely."""
 
-    start: int = 0  # first frame index shown (0-based, inclusive)
-    end: int | None = None  # stop before this frame index (exclusive); None = the last frame
-    stride: int = 1  # show every stride-th frame from start, frames
-    jpeg_quality: int = 85  # JPEG quality for images that are not JPEG files already, 1-100
+    start: int = checked(0, ge=0)  # first frame index shown (0-based, inclusive)
+    end: int | None = checked(None, ge=0)  # stop before this frame index (exclusive); None = the last frame
+    stride: int = checked(1, ge=1)  # show every stride-th frame from start, frames
+    jpeg_quality: int = checked(85, ge=1, le=100)  # JPEG quality for images that are not JPEG files already, 1-100
     raw_images: bool = False  # log decoded RGB instead of JPEG (about 6 MB per 1080p image)
     with_right: bool = True  # log the right image (when the session has right/)
-    depth_step: int = 3  # log every depth_step-th depth pixel along rows and columns, px
-    depth_units_per_m: float = 10000.0  # uint16 depth units per metre (10000: 0.1 mm steps up to 6.5 m)
+    depth_step: int = checked(3, ge=1)  # log every depth_step-th depth pixel along rows and columns, px
+    depth_units_per_m: float = checked(10000.0, gt=0)  # uint16 depth units per metre (10000: 0.1 mm steps up to 6.5 m)
     points: bool = True  # log the RGB point cloud
     cloud: CloudParams = field(default_factory=CloudParams)  # point cloud density
-    color_reduction: int = 2  # decode left JPEGs at 1/n size for the point colours (1, 2, 4 or 8)
+    # decode left JPEGs at 1/n size for the point colours (1, 2, 4 or 8)
+    color_reduction: int = checked(2, choices=_REDUCED_COLOR)
     patch_params: PatchParams = field(default_factory=PatchParams)  # the patch (must match the model's)
     diagnostics: DiagnosticParams = field(default_factory=DiagnosticParams)  # thresholds of the checks
-    flush_every: int = 15  # flush the recording to its sinks every this many frames (bounds memory and loss), frames
-    prefetch: int = 4  # images read ahead of the frame being logged, frames
+    # flush the recording to its sinks every this many frames (bounds memory and loss), frames
+    flush_every: int = checked(15, ge=1)
+    prefetch: int = checked(4, ge=1)  # images read ahead of the frame being logged, frames
 
     def __post_init__(self) -> None:
-        for name, low in (("start", 0), ("stride", 1), ("depth_step", 1), ("flush_every", 1), ("prefetch", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"DebuggerOptions.{name} must be an integer >= {low}, got {value!r}")
-        if self.end is not None and (isinstance(self.end, bool) or not isinstance(self.end, int) or self.end < 0):
-            raise ValueError(f"DebuggerOptions.end must be a non-negative integer or None, got {self.end!r}")
-        if isinstance(self.jpeg_quality, bool) or not isinstance(self.jpeg_quality, int) \
-                or not 1 <= self.jpeg_quality <= 100:
-            raise ValueError(f"DebuggerOptions.jpeg_quality must be an integer in 1..100, got {self.jpeg_quality!r}")
-        if self.color_reduction not in _REDUCED_COLOR:
-            raise ValueError(f"DebuggerOptions.color_reduction must be one of {sorted(_REDUCED_COLOR)}, "
-                             f"got {self.color_reduction!r}")
-        if not (math.isfinite(self.depth_units_per_m) and self.depth_units_per_m > 0):
-            raise ValueError(f"DebuggerOptions.depth_units_per_m must be > 0, got {self.depth_units_per_m!r}")
+        check_fields(self)
 
 
 @dataclass(frozen=True)
@@ -227,24 +216,6 @@ class _ImageReader:
 # --------------------------------------------------------------------------------------------
 
 
-def run_config(session: Session, options: DebuggerOptions, model=None) -> dict:
-    """The resolved configuration of a debugger run, saved in the recording."""
-    from dataclasses import asdict
-
-    from contact_viz import __version__
-
-    config = {
-        "contact_viz_version": __version__,
-        "session": {"path": str(session.root.resolve()), "name": session.name, "frames": len(session),
-                    "depth": getattr(session, "depth_note", None)},
-        "options": asdict(options),
-    }
-    if model is not None:
-        config["model"] = {"threshold": model.threshold, "training_sessions": list(model.training_sessions),
-                           "label_params": asdict(model.label_params), "version": model.version}
-    return config
-
-
 def run_debugger(
     session: Session,
     rec: rerun_log.RecordingStream,
@@ -265,14 +236,18 @@ def run_debugger(
     if model is not None:
         from contact_viz.model.model_file import check_params
 
-        check_params(model, options.patch_params, "contact-viz view")
+        check_params(model.patch_params, options.patch_params, "contact-viz view")
     started = time.perf_counter()
     K = np.asarray(session.calibration.K, dtype=np.float64)
     step = options.depth_step
     with_right = options.with_right and session.has_right
     rerun_log.log_static(rec, session, depth_step=step, depth_K=decimated_intrinsics(K, step),
                          with_right=with_right, with_model=model is not None)
-    rerun_log.log_config(rec, run_config(session, options, model))
+    config = run_config(session, options=options, model=None if model is None else {
+        "threshold": model.threshold, "training_sessions": list(model.training_sessions),
+        "label_params": to_dict(model.label_params), "version": model.version})
+    config["session"]["depth"] = getattr(session, "depth_note", None)
+    rerun_log.log_config(rec, config)
     rerun_log.send_known_series(rec, session, indices, threshold=None if model is None else model.threshold)
     if model is None:
         rerun_log.log_model_hint(rec, indices[0], float(session.timestamps_s[indices[0]]))

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from contact_viz.geometry.patch import REASON_EMPTY_MASK
+from contact_viz.params import check_fields, checked
 
 __all__ = ["DIAGNOSTIC_CODES", "Diagnostic", "DiagnosticParams", "DiagnosticsTracker"]
 
@@ -40,23 +41,15 @@ DIAGNOSTIC_CODES: dict[str, str] = {
 class DiagnosticParams:
     """Thresholds of the per-frame checks."""
 
-    min_tool_area_px: int = 1  # fewer tool-mask pixels than this = no tool, px
-    mask_area_jump: float = 0.5  # relative mask-area change that fires, |dA| / max(A_t, A_prev), fraction in (0, 1]
-    max_invalid_depth_fraction: float = 0.5  # share of band pixels with invalid depth above which it fires, 0-1
-    distance_jump_m: float = 0.005  # change of the patch distance between frames that fires, m
+    min_tool_area_px: int = checked(1, ge=1)  # fewer tool-mask pixels than this = no tool, px
+    # relative mask-area change that fires, |dA| / max(A_t, A_prev), fraction in (0, 1]
+    mask_area_jump: float = checked(0.5, gt=0, le=1)
+    # share of band pixels with invalid depth above which it fires, 0-1
+    max_invalid_depth_fraction: float = checked(0.5, ge=0, lt=1)
+    distance_jump_m: float = checked(0.005, gt=0)  # change of the patch distance between frames that fires, m
 
     def __post_init__(self) -> None:
-        if isinstance(self.min_tool_area_px, bool) or not isinstance(self.min_tool_area_px, int) \
-                or self.min_tool_area_px < 1:
-            raise ValueError(f"DiagnosticParams.min_tool_area_px must be an integer >= 1 (px), "
-                             f"got {self.min_tool_area_px!r}")
-        if not 0 < self.mask_area_jump <= 1:
-            raise ValueError(f"DiagnosticParams.mask_area_jump must be in (0, 1], got {self.mask_area_jump!r}")
-        if not 0 <= self.max_invalid_depth_fraction < 1:
-            raise ValueError(f"DiagnosticParams.max_invalid_depth_fraction must be in [0, 1), "
-                             f"got {self.max_invalid_depth_fraction!r}")
-        if not (math.isfinite(self.distance_jump_m) and self.distance_jump_m > 0):
-            raise ValueError(f"DiagnosticParams.distance_jump_m must be > 0 (m), got {self.distance_jump_m!r}")
+        check_fields(self)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import numpy as np
 from contact_viz.viz import style
 from contact_viz.io.atomic import atomic_write
 from contact_viz.geometry.patch import LAYER_BACKGROUND, LAYER_INTERIOR, PatchResult
+from contact_viz.params import MM_PER_M
 
 __all__ = [
     "FigureStyle",
@@ -39,7 +40,6 @@ __all__ = [
     "timelines_figure",
 ]
 
-MM_PER_M = 1000.0  # millimetres per metre
 DEPTH_CMAP = "gray"  # matplotlib colormap of the depth image (the debugger's "Grayscale")
 DEPTH_PERCENTILES = (1.0, 99.0)  # depth colour range: these percentiles of the valid depth in view, %
 MISSING_DEPTH_RGBA = style.to_float_rgba(style.REDDISH_PURPLE)  # invalid depth pixels (NaN)

@@ -54,6 +54,7 @@ from rerun import RecordingStream
 from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, Diagnostic
 from contact_viz.geometry.pointcloud import Cloud, PatchGeometry
 from contact_viz.io.session import BadFrame, Session
+from contact_viz.params import MM_PER_M
 from contact_viz.viz.style import (
     DEPTH_COLORMAP,
     DIAGNOSTIC_STYLES,
@@ -152,7 +153,6 @@ ENTITY_CONFIG = "config"  # TextDocument (static): the resolved configuration of
 TIMELINE_FRAME = "frame"  # sequence timeline: frame index in the session
 TIMELINE_TIME = "time"  # duration timeline: session time, s
 
-MM_PER_M = 1000.0  # millimetres per metre
 IMAGE_PLANE_DISTANCE_M = 0.015  # how far from each camera its image is drawn in the 3D view, m
 GAP_ARROW_RADIUS_M = 0.0002  # shaft radius of the gap arrow, m
 BOX_LINE_RADIUS_PX = 1.5  # half line width of the patch box, UI px (negative radii in Rerun = UI units)

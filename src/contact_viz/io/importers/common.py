@@ -146,17 +146,6 @@ def _place_calibration(files: Sequence[str | Path], tmp: Path, copy: bool) -> li
     return names
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image
-
-    try:
-        with Image.open(path) as image:
-            width, height = image.size
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise SessionError(path, f"expected a readable PNG/JPEG image ({type(exc).__name__}: {exc})") from exc
-    return height, width
-
-
 def _stem_width(count: int) -> int:
     return max(STEM_DIGITS, len(str(max(count - 1, 0))))
 

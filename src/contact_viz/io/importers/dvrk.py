@@ -14,7 +14,8 @@ from pathlib import Path
 from contact_viz.io.calibration import read_calibration
 from contact_viz.errors import SessionError
 
-from contact_viz.io.importers.common import FORCE_COLUMNS, ImportResult, NS_PER_S, _CAMERA_INFO_FIELDS, _DVRK_FRAME, _image_size, _place, _place_calibration, _staging, _stem_width, _write_csv, _write_session_json
+from contact_viz.io.decoders import read_image_size
+from contact_viz.io.importers.common import FORCE_COLUMNS, ImportResult, NS_PER_S, _CAMERA_INFO_FIELDS, _DVRK_FRAME, _place, _place_calibration, _staging, _stem_width, _write_csv, _write_session_json
 
 # --------------------------------------------------------------------------------------------
 # dVRK data_collection
@@ -286,7 +287,7 @@ def import_dvrk(
         if not calib_names:
             calib_names = _camera_info_calibration(topics, tmp, notes)
         if calib_names:
-            read_calibration(tmp, _image_size(frames[0][2]))  # fail now, with the file named, if it is wrong
+            read_calibration(tmp, read_image_size(frames[0][2]))  # fail now, with the file named, if it is wrong
         extra = {"video": video, "force_topic": chosen[0].topic if chosen else None}
         _write_session_json(tmp / "session.json", out_path.name, "dvrk", folder, [float(f[0]) for f in frames], extra)
     out_path = out_path.expanduser().resolve()

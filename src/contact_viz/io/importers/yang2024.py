@@ -11,7 +11,8 @@ from pathlib import Path
 from contact_viz.io.calibration import read_calibration
 from contact_viz.errors import SessionError
 
-from contact_viz.io.importers.common import ImportResult, YANG_FORCE_COLUMNS, YANG_LABELS, _YANG_FRAME, _image_size, _place, _place_calibration, _staging, _stem_width, _write_csv, _write_session_json
+from contact_viz.io.decoders import read_image_size
+from contact_viz.io.importers.common import ImportResult, YANG_FORCE_COLUMNS, YANG_LABELS, _YANG_FRAME, _place, _place_calibration, _staging, _stem_width, _write_csv, _write_session_json
 
 # --------------------------------------------------------------------------------------------
 # Yang et al. 2024
@@ -114,7 +115,7 @@ def import_yang2024(
         _write_csv(tmp / "frames.csv", ("frame", "timestamp"), frame_rows)
         _write_csv(tmp / "force.csv", ("frame", "fx", "fy", "fz"), force_rows)
         if _place_calibration(calibration, tmp, copy):
-            read_calibration(tmp, _image_size(left[numbers[0]]))
+            read_calibration(tmp, read_image_size(left[numbers[0]]))
         _write_session_json(tmp / "session.json", out_path.name, "yang2024", src, times, {})
     out_path = out_path.expanduser().resolve()
     return ImportResult(
