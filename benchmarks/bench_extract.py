@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -65,22 +66,27 @@ def run_extract(session: Path, out: Path, *options: str, src: str | None = None)
 
 def compare_sources(session: Path, sources: list[str], repeats: int, workdir: Path, options: list[str]) -> None:
     """A/B: the whole extract command of each source tree (its ``src`` directory on PYTHONPATH),
-    one invocation of each in turn, ``repeats`` rounds; medians, each tree's gain over the first,
-    and whether all wrote the same features CSV."""
-    runs: dict[str, list[float]] = {src: [] for src in sources}
+    one invocation of each in turn, ``repeats`` rounds (each starting with the next tree); medians of the wall-clock time and of the
+    CPU time (user + system, the command and its workers: steadier than wall-clock on a shared
+    machine), each tree's gain over the first, and whether all wrote the same features CSV."""
+    runs: dict[str, list[tuple[float, float]]] = {src: [] for src in sources}
     outputs: dict[str, bytes] = {}
-    for _ in range(repeats):
-        for k, src in enumerate(sources):
-            out = workdir / f"ab-{k}.csv"
-            runs[src].append(run_extract(session, out, *options, src=src))
+    for r in range(repeats):
+        for src in sources[r % len(sources):] + sources[:r % len(sources)]:  # each round starts elsewhere
+            out = workdir / f"ab-{sources.index(src)}.csv"
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            wall = run_extract(session, out, *options, src=src)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
+            runs[src].append((wall, cpu))
             outputs[src] = out.read_bytes()
-            print(f"  run {len(runs[src])}: {src}: {runs[src][-1]:.2f} s", flush=True)
-    first = statistics.median(runs[sources[0]])
+            print(f"  run {len(runs[src])}: {src}: wall {wall:.2f} s, cpu {cpu:.2f} s", flush=True)
     print(f"{session.name}: extract {' '.join(options)}, medians of {repeats} interleaved invocations")
+    first = [statistics.median(v[i] for v in runs[sources[0]]) for i in (0, 1)]
     for src in sources:
-        median = statistics.median(runs[src])
-        print(f"  {src}: {median:.2f} s, {100 * (first - median) / first:+.1f}% vs the first; runs "
-              + " ".join(f"{v:.2f}" for v in runs[src]))
+        wall, cpu = (statistics.median(v[i] for v in runs[src]) for i in (0, 1))
+        print(f"  {src}: wall {wall:.2f} s ({100 * (first[0] - wall) / first[0]:+.1f}% vs the first), "
+              f"cpu {cpu:.2f} s ({100 * (first[1] - cpu) / first[1]:+.1f}%)")
     same = len(set(outputs.values())) == 1
     print(f"  features CSV identical across trees: {same}")
 

@@ -24,6 +24,16 @@ class Squares:
 
 
 @dataclass(frozen=True)
+class CallerFails:
+    caller_pid: int
+
+    def __call__(self, lo: int, hi: int) -> list[int]:
+        if os.getpid() == self.caller_pid:
+            raise KeyError("the caller's own error")
+        return list(range(lo, hi))
+
+
+@dataclass(frozen=True)
 class SlowSquares(Squares):
     def __call__(self, lo: int, hi: int):
         time.sleep(0.01)
@@ -37,7 +47,7 @@ class FailsInWorker:
     caller_pid: int
 
     def __call__(self, lo: int, hi: int) -> list[int]:
-        if os.getpid() != self.caller_pid and lo >= 10:
+        if os.getpid() != self.caller_pid:
             raise ArithmeticError(f"items {lo}..{hi - 1} are bad")
         time.sleep(0.01)
         return list(range(lo, hi))
@@ -45,12 +55,12 @@ class FailsInWorker:
 
 @dataclass(frozen=True)
 class DiesInWorker:
-    """Kills its own process when it meets item 40 in a worker."""
+    """Kills its own process in a worker."""
 
     caller_pid: int
 
     def __call__(self, lo: int, hi: int) -> list[int]:
-        if os.getpid() != self.caller_pid and lo <= 40 < hi:
+        if os.getpid() != self.caller_pid:
             os.kill(os.getpid(), signal.SIGKILL)
         time.sleep(0.01)
         return [i * 10 for i in range(lo, hi)]
@@ -79,10 +89,10 @@ def test_results_in_item_order(processes, n_items, chunk):
     assert multiprocessing.active_children() == []  # every worker was stopped and joined
 
 
-def test_work_is_shared_by_the_workers_not_the_caller():
-    out = run_chunks(SlowSquares(), 200, chunk_size=2, processes=2)
-    pids = {pid for _, _, pid in out}
-    assert os.getpid() not in pids and len(pids) == 2
+def test_work_is_shared_by_the_caller_and_the_workers():
+    out = run_chunks(SlowSquares(), 200, chunk_size=2, processes=3)
+    pids = [pid for _, _, pid in out]
+    assert len(set(pids)) >= 2 and pids[-1] == os.getpid()  # the caller takes the chunks from the back
 
 
 def test_single_process_starts_nothing():
@@ -100,7 +110,7 @@ def test_pool_runs_several_jobs_then_stops():
         assert pool.map(square, range(7), progress=done.append) == [k * k for k in range(7)]
         assert done == list(range(1, 8))
         assert [sq for _, sq, _ in pool.map_chunks(Squares(), 9, chunk_size=4)] == [k * k for k in range(9)]
-        assert len(multiprocessing.active_children()) == 2
+        assert len(multiprocessing.active_children()) == 1  # the caller is the second process
     assert multiprocessing.active_children() == []
 
 
@@ -114,6 +124,12 @@ def test_worker_exception_is_raised_in_caller_as_it_is():
 def test_killed_worker_is_reported_and_the_pool_stopped():
     with pytest.raises(WorkerError, match=r"worker process died .* items \d+\.\.\d+; the pool was stopped"):
         run_chunks(DiesInWorker(os.getpid()), 300, chunk_size=2, processes=2)
+    assert multiprocessing.active_children() == []
+
+
+def test_caller_exception_stops_workers():
+    with pytest.raises(KeyError, match="caller's own error"):
+        run_chunks(CallerFails(os.getpid()), 100, chunk_size=2, processes=3)
     assert multiprocessing.active_children() == []
 
 

@@ -85,8 +85,8 @@ def extract(
     params_file: ParamsFile = None,
     cache_dir: CacheDir = None,
     processes: Annotated[Optional[int], typer.Option(
-        min=1, help="Processes computing frames in parallel; 1 computes them in this process [default: the "
-        "number of cores, at most 8].")] = None,
+        min=1, help="Processes to spread the frames over, this one included [default: the number of cores, "
+        "at most 8].")] = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
     from contact_viz.pipeline.allocator import keep_freed_memory

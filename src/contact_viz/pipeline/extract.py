@@ -191,8 +191,8 @@ def extract_features(
     and a :class:`BadFrameWarning` each), computed by :class:`FeatureRows`.
 
     ``progress`` is called with the number of frames done. ``processes`` > 1 spreads the frames
-    over that many spawned worker processes (threads cannot use more than about one core for
-    this work); ``pool`` instead uses a pool started beforehand, whose workers import while the
+    over this process and ``processes - 1`` spawned ones (threads cannot use more than about
+    one core for this work); ``pool`` instead uses a pool started beforehand, whose workers import while the
     caller opens the session (the CLI starts ``ProcessPool(n, initializer=keep_freed_memory,
     preload=("contact_viz.pipeline.extract",))`` first thing). The rows
     are the same whatever the number of processes.

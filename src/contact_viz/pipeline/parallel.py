@@ -8,10 +8,12 @@ interpreter: safe after OpenCV and OpenBLAS have started their threads, unlike "
 API
 ---
 ``ProcessPool(processes, *, initializer=None, preload=())`` -- a context manager.
-    ``processes`` worker processes, started at once, so that they import (``preload``: module
-    names, e.g. NumPy, OpenCV, the patch) while the caller does its own start-up; each runs
-    ``initializer()`` (a module-level function) first. ``processes=1`` starts nothing: the work
-    then runs in the calling process, by the same functions. A pool runs any number of jobs.
+    ``processes`` processes share the work, the caller included: ``processes - 1`` worker
+    processes, started at once, so that they import (``preload``: module names, e.g. NumPy,
+    OpenCV, the patch) while the caller does its own start-up; each runs ``initializer()`` (a
+    module-level function) first (the caller runs it itself if it should apply there too).
+    ``processes=1`` starts nothing: the work runs in the calling process, by the same
+    functions. A pool runs any number of jobs.
 
 ``pool.map(fn, items, *, progress=None) -> list``
     ``[fn(item) for item in items]``, one task per item (e.g. one session each); results in
@@ -26,7 +28,9 @@ API
     ``map_chunks`` in a pool of its own (no more processes than chunks).
 
 ``fn``/``task`` is pickled once and unpickled once in each worker (not once per item), so it
-may carry an opened session. Both ``map`` calls call ``progress(n)`` in the caller with the number of items done so far.
+may carry an opened session. The workers take the items from the front (a few at a time), the caller from the back, so
+nobody waits for a worker still starting up. Both ``map`` calls call
+``progress(n)`` in the caller with the number of items done so far.
 An exception raised by ``fn``/``task`` in a worker is raised again in the caller, as it is
 (its worker-side traceback is its ``__cause__``), exactly as with ``processes=1``; a worker
 that dies (killed, out of memory) raises :class:`WorkerError`. Either way, and on Ctrl-C
@@ -52,7 +56,7 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 _USABLE_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-DEFAULT_PROCESSES = min(8, _USABLE_CORES)  # worker processes sharing the work (one per core, at most 8)
+DEFAULT_PROCESSES = min(8, _USABLE_CORES)  # processes sharing the work, the caller included (one per core, at most 8)
 
 
 class ChunkTask(Protocol):
@@ -132,7 +136,7 @@ class _Chunk:
 
 
 class ProcessPool:
-    """``processes`` spawned worker processes (none for ``processes=1``); see the module docstring."""
+    """``processes - 1`` spawned worker processes and the caller; see the module docstring."""
 
     def __init__(self, processes: int, *, initializer: Callable[[], object] | None = None,
                  preload: Sequence[str] = ()) -> None:
@@ -142,9 +146,9 @@ class ProcessPool:
         self._executor: cf.ProcessPoolExecutor | None = None
         if processes > 1:
             self._executor = cf.ProcessPoolExecutor(
-                processes, mp_context=multiprocessing.get_context("spawn"),
+                processes - 1, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_start_worker, initargs=(initializer, tuple(preload)))
-            for _ in range(processes):  # the executor starts a process for each job no idle one takes
+            for _ in range(processes - 1):  # the executor starts a process for each job no idle one takes
                 self._executor.submit(_started)
 
     def __enter__(self) -> ProcessPool:
@@ -175,7 +179,7 @@ class ProcessPool:
 
     def _run(self, fn: Callable[[Any], Any], items: list[Any], sizes: list[int],
              progress: Callable[[int], None] | None, describe: Callable[[int], str]) -> list[Any]:
-        """``fn`` over ``items`` (in the workers, or here for ``processes=1``), results in order;
+        """``fn`` over ``items`` (by the workers and this process), results in order;
         ``progress`` gets the running total of the ``sizes`` of the items done."""
         done = 0
         if self._executor is None:
@@ -188,26 +192,41 @@ class ProcessPool:
                 if progress is not None:
                     progress(done)
             return results
-        futures: dict[cf.Future, int] = {}
         results = [None] * len(items)
+        in_flight: dict[cf.Future, int] = {}
+        queued = 2 * (self.processes - 1)  # jobs handed to the workers at a time (one running, one ready each)
+        front, back = 0, len(items)  # items[front:back] are not handed out yet
         k = None
+
+        def finished(j: int, result: Any) -> None:
+            nonlocal done
+            results[j] = result
+            done += sizes[j]
+            if progress is not None:
+                progress(done)
+
         try:
             shared = _Shared(fn)
-            for j, item in enumerate(items):
-                futures[self._executor.submit(shared, item)] = j
-            for future in cf.as_completed(futures):
-                k = futures[future]
-                results[k] = future.result()
-                done += sizes[k]
-                if progress is not None:
-                    progress(done)
+            while front < back or in_flight:
+                while front < back and len(in_flight) < queued:
+                    in_flight[self._executor.submit(shared, items[front])] = front
+                    front += 1
+                if front < back:  # this process works too, from the back
+                    back -= 1
+                    finished(back, fn(items[back]))
+                    ready = [future for future in in_flight if future.done()]
+                else:
+                    ready = cf.wait(in_flight, return_when=cf.FIRST_COMPLETED).done
+                for future in ready:
+                    k = in_flight.pop(future)
+                    finished(k, future.result())
         except BrokenProcessPool as exc:
-            self._stop(futures)
+            self._stop(in_flight)
             where = "" if k is None else f" while computing {describe(k)}"
             raise WorkerError(f"a worker process died (killed, out of memory, or its start-up failed){where}; "
                               "the pool was stopped") from exc
         except BaseException:
-            self._stop(futures)
+            self._stop(in_flight)
             raise
         return results
 
@@ -227,7 +246,8 @@ def run_chunks(task: ChunkTask, n_items: int, *, chunk_size: int, processes: int
                progress: Callable[[int], None] | None = None,
                initializer: Callable[[], object] | None = None) -> list[Any]:
     """``task(lo, hi)`` over the chunks of ``range(n_items)`` in a pool of its own of at most
-    ``processes`` workers (no more than there are chunks; ``processes=1``: in this process)."""
+    ``processes`` processes, this one included (no more than there are chunks; ``processes=1``:
+    in this process only)."""
     if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
         raise ValueError(f"processes must be a positive integer, got {processes!r}")
     n_chunks = len(chunk_bounds(n_items, chunk_size))
