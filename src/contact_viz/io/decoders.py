@@ -13,11 +13,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from contact_viz.errors import SessionError
 from contact_viz.io.npy_rows import read_npy_rows
-from contact_viz.io.palette_png import is_palette_png, palette_indices
 from contact_viz.params import MM_PER_M
 
 
@@ -56,15 +55,14 @@ def _imdecode_unchanged(data: np.ndarray) -> np.ndarray | None:
 
 
 def _mask_ids(data: np.ndarray) -> np.ndarray | None:
-    """A mask file's pixel values: palette indices of a palettized PNG, else OpenCV's decode."""
-    raw = data.tobytes()
-    if not is_palette_png(raw):
-        return _imdecode_unchanged(data)
-    ids = palette_indices(raw)
-    if ids is None:
-        with Image.open(io.BytesIO(raw)) as image:
-            ids = np.asarray(image)
-    return ids
+    """A mask file's pixel values: palette indices of a palettized PNG (PIL), else OpenCV's decode."""
+    try:
+        with Image.open(io.BytesIO(data.tobytes())) as image:  # reads the header; decodes palettized images only
+            if image.mode == "P":
+                return np.asarray(image)
+    except UnidentifiedImageError:
+        pass  # not an image PIL knows: OpenCV's verdict (None: "could not decode it")
+    return _imdecode_unchanged(data)
 
 
 def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
@@ -73,9 +71,10 @@ def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
     Palettized (SAM2/DAVIS) and single-channel masks: pixel value = object id, 0 = background;
     tool = nonzero, or == ``object_id`` when given. Multi-channel masks: tool = any colour channel
     nonzero (``object_id`` is then an error). Palettized PNGs are decoded to their palette
-    indices (contact_viz.io.palette_png; PIL for bit depths other than 8), the rest by OpenCV.
+    indices by PIL, the rest by OpenCV.
     """
-    ids = _decode(path, "a tool mask PNG (palettized object ids, or 8-bit 0/255)", _mask_ids)
+    what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
+    ids = _decode(path, what, _mask_ids)
     if ids.ndim == 2:
         return ids == object_id if object_id is not None else ids != 0
     if ids.ndim == 3 and ids.shape[2] in (3, 4):
@@ -176,6 +175,7 @@ def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, i
         _check_image_shape(path, shape, image_size, "depth map")
 
     with _loading(path, what):
+        # read_npy_rows, not np.load(mmap_mode="r")[row0:row1]: extract 14.7% faster (bench_extract --compare)
         rows, _ = read_npy_rows(path, row0, row1, check=check)
     return np.ascontiguousarray(rows, dtype=np.float32)
 
