@@ -44,7 +44,6 @@ def test_only_the_rows_are_read(tmp_path):
 
 @pytest.mark.parametrize("array, message", [
     (np.zeros((3, 4, 2), np.float32), "2-D"),
-    (np.asfortranarray(np.zeros((3, 4), np.float32)), "Fortran"),
     (np.array([[None, 1]], dtype=object), "numeric"),
 ])
 def test_unsupported_arrays(tmp_path, array, message):
@@ -85,3 +84,23 @@ def test_check_sees_the_header_before_any_row(tmp_path):
 
     with pytest.raises(LookupError, match=r"not \(4, 6\)"):
         read_npy_rows(path, 0, 9, check=refuse)  # before the rows are found out of range
+
+
+def test_fortran_order_rows_equal_np_load(tmp_path):
+    """A column-major file (np.save of a transposed array) is read as np.load reads it."""
+    array = np.arange(7 * 5, dtype=np.float32).reshape(5, 7).T  # (7, 5), Fortran order
+    path = tmp_path / "f.npy"
+    np.save(path, array)
+    assert np.lib.format.read_array_header_1_0(_after_magic(path))[1]  # the file is Fortran-ordered
+    rows, shape = read_npy_rows(path, 2, 6)
+    assert shape == (7, 5)
+    np.testing.assert_array_equal(rows, np.load(path)[2:6])
+    assert rows.flags.c_contiguous
+
+
+def _after_magic(path):
+    import io
+
+    handle = io.BytesIO(path.read_bytes())
+    np.lib.format.read_magic(handle)
+    return handle

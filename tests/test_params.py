@@ -14,6 +14,7 @@ from contact_viz.geometry.tooltip import TipParams
 from contact_viz.model.hmm import HMMParams
 from contact_viz.params import LabelParams, PatchParams, check_fields, checked, from_dict, to_dict
 from contact_viz.viz.debugger import DebuggerOptions
+from contact_viz.viz.video import VideoParams
 from contact_viz.viz.diagnostics import DiagnosticParams
 
 # (class, field, bad value, the whole message it must give)
@@ -33,7 +34,13 @@ BAD = [
     (SGBMParams, "disparity_range_fraction", 0.0,
      "SGBMParams.disparity_range_fraction must be a finite number in (0, 1], got 0.0"),
     (SGBMParams, "lr_check", 1, "SGBMParams.lr_check must be True or False, got 1"),
-    (CloudParams, "stride_px", 0, "CloudParams.stride_px must be an integer >= 1, got 0"),
+    (CloudParams, "stride_px", -1, "CloudParams.stride_px must be None or an integer >= 0, got -1"),
+    (CloudParams, "near_stride_px", 0, "CloudParams.near_stride_px must be an integer >= 1, got 0"),
+    (DebuggerOptions, "images", "png", "DebuggerOptions.images must be one of ['video', 'jpeg', 'raw'], got 'png'"),
+    (DebuggerOptions, "right_step", 3, "DebuggerOptions.right_step must be one of [1, 2], got 3"),
+    (VideoParams, "codec", "vp9", "VideoParams.codec must be one of ['av1', 'h264'], got 'vp9'"),
+    (VideoParams, "crf", 64, "VideoParams.crf must be None or an integer in [0, 63], got 64"),
+    (VideoParams, "keyframe_interval_s", 0, "VideoParams.keyframe_interval_s must be a finite number > 0, got 0"),
     (TipParams, "tip_band_px", -0.5, "TipParams.tip_band_px must be a finite number >= 0, got -0.5"),
     (DiagnosticParams, "mask_area_jump", 0, "DiagnosticParams.mask_area_jump must be a finite number in (0, 1], got 0"),
     (DiagnosticParams, "max_invalid_depth_fraction", 1.0,
@@ -70,7 +77,8 @@ def test_json_round_trip_keeps_values_as_given():
     text = json.dumps(to_dict(params))
     assert '"erosion_px": 2,' in text and '"ring_px": 3,' in text
     assert from_dict(PatchParams, json.loads(text)) == params
-    for cls in (PatchParams, LabelParams, SGBMParams, CloudParams, TipParams, DiagnosticParams, HMMParams):
+    for cls in (PatchParams, LabelParams, SGBMParams, CloudParams, TipParams, DiagnosticParams, HMMParams,
+                VideoParams):
         assert from_dict(cls, json.loads(json.dumps(to_dict(cls())))) == cls()
 
 

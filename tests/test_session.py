@@ -167,7 +167,7 @@ def test_mask_formats(tmp_path):
     colours[ids == 2] = (200, 0, 0)
     Image.fromarray(colours).save(rgb)
     np.testing.assert_array_equal(read_tool_mask(rgb), ids != 0)
-    with pytest.raises(SessionError, match="rgb.png.*object_id"):
+    with pytest.raises(SessionError, match="rgb.png.*object-id"):
         read_tool_mask(rgb, object_id=1)
     pal = tmp_path / "pal.png"
     write_palette_png(pal, ids)

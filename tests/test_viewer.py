@@ -49,6 +49,7 @@ CX, CY = 159.5, 89.5  # principal point, px
 BASELINE_M = 0.005
 TISSUE_M = 0.10  # tissue depth at the image centre, m
 TOOL_COLS = (140, 180)  # tool shaft columns [x0, x1), px
+DEPTH_STEP = DebuggerOptions().depth_step  # the default depth decimation, px
 
 
 def gap_m(t: int) -> float:
@@ -183,13 +184,19 @@ def default_run(session_dir, tmp_path_factory):
     return run(session_dir, out)
 
 
+@pytest.fixture(scope="module")
+def jpeg_run(session_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("rrd") / "jpeg.rrd"
+    return run(session_dir, out, DebuggerOptions(images="jpeg"))
+
+
 def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
     session, summary, rec = default_run
     frames = list(range(N_FRAMES))
     assert summary.frames == N_FRAMES and summary.bad_frames == 0 and not summary.interrupted
     per_frame = {
-        rerun_log.ENTITY_LEFT_IMAGE: "EncodedImage:blob",
-        rerun_log.ENTITY_RIGHT_IMAGE: "EncodedImage:blob",
+        rerun_log.ENTITY_LEFT_IMAGE: "VideoStream:sample",
+        rerun_log.ENTITY_RIGHT_IMAGE: "VideoStream:sample",
         rerun_log.ENTITY_LEFT_LAYERS: "SegmentationImage:buffer",
         rerun_log.ENTITY_DEPTH_IMAGE: "DepthImage:buffer",
         rerun_log.ENTITY_DEPTH_LAYERS: "SegmentationImage:buffer",
@@ -209,6 +216,8 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
     }
     for entity, component in per_frame.items():
         assert rec.frames(entity, component) == frames, entity
+    for entity in (rerun_log.ENTITY_LEFT_IMAGE, rerun_log.ENTITY_RIGHT_IMAGE):  # AV1 streams, said statically
+        assert rec.static[(entity, "VideoStream:codec")].as_py() == [rr.VideoCodec.AV1.value]
     # the time timeline is the session's time
     times = [f for f, _ in rec.rows[(rerun_log.ENTITY_SERIES_DISTANCE, "Scalars:scalars")]]
     assert sorted(times) == frames
@@ -221,9 +230,14 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
     K = np.array(rec.static[(rerun_log.ENTITY_LEFT_CAMERA, "Pinhole:image_from_camera")].as_py()[0]).reshape(3, 3).T
     np.testing.assert_allclose(K, session.calibration.K, rtol=1e-6)
     K_depth = np.array(rec.static[(rerun_log.ENTITY_DEPTH_CAMERA, "Pinhole:image_from_camera")].as_py()[0])
-    np.testing.assert_allclose(K_depth.reshape(3, 3).T, decimated_intrinsics(session.calibration.K, 3), rtol=1e-6)
+    np.testing.assert_allclose(K_depth.reshape(3, 3).T, decimated_intrinsics(session.calibration.K, DEPTH_STEP),
+                               rtol=1e-6)
     assert rec.static[(rerun_log.ENTITY_RIGHT_CAMERA, "Transform3D:translation")].as_py()[0] == pytest.approx(
         [BASELINE_M, 0, 0])
+    # the right image is logged at half size: its camera has half the focal length and resolution
+    K_right = np.array(rec.static[(rerun_log.ENTITY_RIGHT_CAMERA, "Pinhole:image_from_camera")].as_py()[0])
+    np.testing.assert_allclose(K_right.reshape(3, 3).T[:2], np.asarray(session.calibration.K)[:2] / 2, rtol=1e-6)
+    assert rec.static[(rerun_log.ENTITY_RIGHT_CAMERA, "Pinhole:resolution")].as_py()[0] == [W / 2, H / 2]
     for entity in (rerun_log.ENTITY_SERIES_DISTANCE, rerun_log.ENTITY_SERIES_TRUTH):
         assert (entity, "SeriesLines:colors") in rec.static
     # the resolved configuration travels with the recording
@@ -232,8 +246,8 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
     assert config["options"]["patch_params"]["n1"] == 31 and config["session"]["frames"] == len(session)
 
 
-def test_images_pass_through_and_layers_depth_patch_match_extract(default_run, session_dir):
-    session, _, rec = default_run
+def test_images_pass_through_and_layers_depth_patch_match_extract(jpeg_run, session_dir):
+    session, _, rec = jpeg_run
     expected = expected_patches(session, range(N_FRAMES))
     blobs = rec.values(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob")
     layers = rec.values(rerun_log.ENTITY_LEFT_LAYERS, "SegmentationImage:buffer")
@@ -253,10 +267,11 @@ def test_images_pass_through_and_layers_depth_patch_match_extract(default_run, s
         source = (session_dir / "left" / f"{stem}.jpg").read_bytes()
         assert image_buffer(blobs[index], (-1,), np.uint8).tobytes() == source
         np.testing.assert_array_equal(image_buffer(layers[index], (H, W), np.uint8), patch.layer_ids)
-        np.testing.assert_array_equal(image_buffer(depth[index], (-(-H // 3), -(-W // 3)), np.uint16),
-                                      depth_preview(frame.depth_m, 3, 10000.0))
-        np.testing.assert_array_equal(image_buffer(depth_layers[index], (-(-H // 3), -(-W // 3)), np.uint8),
-                                      patch.layer_ids[::3, ::3])
+        step = DEPTH_STEP
+        np.testing.assert_array_equal(image_buffer(depth[index], (-(-H // step), -(-W // step)), np.uint16),
+                                      depth_preview(frame.depth_m, step, DebuggerOptions().depth_units_per_m))
+        np.testing.assert_array_equal(image_buffer(depth_layers[index], (-(-H // step), -(-W // step)), np.uint8),
+                                      patch.layer_ids[::step, ::step])
         assert distance[index] == pytest.approx(1000 * patch.distance_m, rel=1e-12, nan_ok=True)
         assert signal[index] == pytest.approx(patch.signal, rel=1e-12, nan_ok=True)
         if patch.found:
@@ -331,12 +346,12 @@ def test_start_end_stride_select_the_frames(session_dir, tmp_path):
     options = DebuggerOptions(start=2, end=11, stride=3, with_right=False)
     session, summary, rec = run(session_dir, tmp_path / "sel.rrd", options)
     assert summary.frames == 3
-    for entity, component in ((rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob"),
+    for entity, component in ((rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample"),
                               (rerun_log.ENTITY_SERIES_DISTANCE, "Scalars:scalars"),
                               ("series/force/magnitude", "Scalars:scalars"),
                               (rerun_log.ENTITY_CLOUD_NEAR, "Points3D:positions")):
         assert rec.frames(entity, component) == [2, 5, 8], entity
-    assert not rec.rows[(rerun_log.ENTITY_RIGHT_IMAGE, "EncodedImage:blob")]
+    assert not rec.rows[(rerun_log.ENTITY_RIGHT_IMAGE, "VideoStream:sample")]
     expected = expected_patches(session, [2, 5, 8])
     distance = rec.scalars(rerun_log.ENTITY_SERIES_DISTANCE)
     for index, (_, patch) in expected.items():
@@ -369,7 +384,8 @@ def test_bad_frames_in_the_middle_are_logged_and_the_run_goes_on(session_dir, tm
     assert rec.scalars(rerun_log.diagnostic_entity("bad_frame")) == {5: 1.0}
     later = [i for i in range(6, N_FRAMES)]
     assert set(later) <= set(rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer"))
-    assert set(later) - {7} <= set(rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob"))
+    assert set(later) - {7} <= set(rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample"))
+    assert not {5, 7} & set(rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample"))
     # an unreadable left image is only a display problem: frame 7 still has its patch
     assert 7 in rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "Clear:is_recursive")
     assert not math.isnan(rec.scalars(rerun_log.ENTITY_SERIES_DISTANCE)[7])
@@ -383,7 +399,7 @@ def test_png_images_are_jpeg_encoded_and_raw_images_logged_as_is(session_dir, tm
         jpg.unlink()
     session = open_session(pngs)
     source = np.asarray(Image.open(pngs / "left" / "000003.png"))
-    _, _, rec = run(pngs, tmp_path / "png.rrd", DebuggerOptions(end=4, jpeg_quality=95, with_right=False))
+    _, _, rec = run(pngs, tmp_path / "png.rrd", DebuggerOptions(end=4, images="jpeg", jpeg_quality=95, with_right=False))
     blob = image_buffer(rec.values(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob")[3], (-1,), np.uint8)
     assert blob[:3].tobytes() == b"\xff\xd8\xff"  # a JPEG, made from the PNG
     import cv2
@@ -392,10 +408,10 @@ def test_png_images_are_jpeg_encoded_and_raw_images_logged_as_is(session_dir, tm
         return cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes()
 
     assert blob.tobytes() == cv2_jpeg(source, 95)  # encoded once, at the quality asked for
-    _, _, rec30 = run(pngs, tmp_path / "q30.rrd", DebuggerOptions(end=4, jpeg_quality=30, with_right=False))
+    _, _, rec30 = run(pngs, tmp_path / "q30.rrd", DebuggerOptions(end=4, images="jpeg", jpeg_quality=30, with_right=False))
     blob30 = image_buffer(rec30.values(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob")[3], (-1,), np.uint8)
     assert blob30.tobytes() == cv2_jpeg(source, 30) and blob30.size < blob.size
-    _, _, rec = run(pngs, tmp_path / "raw.rrd", DebuggerOptions(end=4, raw_images=True, points=False))
+    _, _, rec = run(pngs, tmp_path / "raw.rrd", DebuggerOptions(end=4, images="raw", points=False))
     raw = rec.values(rerun_log.ENTITY_LEFT_IMAGE, "Image:buffer")
     np.testing.assert_array_equal(image_buffer(raw[3], (H, W, 3), np.uint8), source)
     right = rec.values(rerun_log.ENTITY_RIGHT_IMAGE, "Image:buffer")  # raw mode decodes the right JPEGs too
@@ -412,7 +428,7 @@ def test_interrupted_run_leaves_a_readable_recording(session_dir, tmp_path):
 
     _, summary, rec = run(session_dir, tmp_path / "stopped.rrd", DebuggerOptions(), progress=stop_after_five)
     assert summary.interrupted and summary.frames == 5
-    assert rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob") == [0, 1, 2, 3, 4]
+    assert rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample") == [0, 1, 2, 3, 4]
 
 
 def test_killed_process_leaves_what_was_flushed(session_dir, tmp_path):
@@ -528,7 +544,7 @@ def test_voxel_downsample_matches_the_literal_definition():
 def test_cloud_full_density_near_the_patch_and_voxels_elsewhere():
     K = np.array([[300.0, 0, 50], [0, 300.0, 50], [0, 0, 1]])
     depth = np.full((101, 101), 0.1, np.float32)
-    params = CloudParams(near_radius_px=10, stride_px=2, voxel_m=0.001)
+    params = CloudParams(near_radius_px=10, near_stride_px=1, stride_px=2, voxel_m=0.001)
     cloud = depth_cloud(depth, K, center_xy=(50, 50), params=params)
     # near: every pixel of the 21x21 square, exactly back-projected
     near, _ = backproject(depth, K, box_xyxy=(40, 40, 61, 61))
@@ -546,6 +562,13 @@ def test_cloud_full_density_near_the_patch_and_voxels_elsewhere():
     assert cloud.far_radius_m == pytest.approx(0.0005)
     # no patch: no near part
     assert depth_cloud(depth, K, params=params).near_points_m.shape == (0, 3)
+    # every 2nd pixel near the patch (points twice as large, still touching); stride 0: no far part
+    thin = depth_cloud(depth, K, center_xy=(50, 50), params=CloudParams(stride_px=0))
+    assert thin.far_points_m.shape == (0, 3) and thin.far_colors.shape == (0, 3)
+    square = backproject(depth, K, box_xyxy=(10, 10, 91, 91))[0]  # the default 40 px half-side, clipped
+    np.testing.assert_array_equal(thin.near_points_m, square[(np.arange(81 * 81) // 81 % 2 == 0)
+                                                             & (np.arange(81 * 81) % 81 % 2 == 0)])
+    assert thin.near_radius_m == pytest.approx(2 * 0.6 * 0.1 / 300)
 
 
 def test_patch_geometry_reproduces_the_patch_numbers(session_dir):
@@ -642,3 +665,89 @@ def test_styles_cover_every_class_series_and_diagnostic():
         SERIES_STYLES)
     with pytest.raises(KeyError):
         layer_style(9)
+
+
+# ------------------------------------------------------------------------------------------
+# The video streams, decoded back
+# ------------------------------------------------------------------------------------------
+
+
+def decode_logged_video(rec: Recording, entity: str) -> dict[int, np.ndarray]:
+    """Decode the VideoStream samples of ``entity`` in frame order with PyAV: frame -> RGB (BT.601 limited)."""
+    import av
+
+    from test_video import bt601_i420_to_rgb
+
+    codec = rec.static[(entity, "VideoStream:codec")].as_py()[0]
+    decoder = av.CodecContext.create({rr.VideoCodec.AV1.value: "libdav1d", rr.VideoCodec.H264.value: "h264"}[codec],
+                                     "r")
+    samples = sorted(rec.rows[(entity, "VideoStream:sample")], key=lambda r: r[0])
+    frames = []
+    for _, value in samples:
+        frames += decoder.decode(av.Packet(value.values[0].values.to_numpy(zero_copy_only=False).tobytes()))
+    frames += decoder.decode(None)
+    assert len(frames) == len(samples)  # one frame per sample, in order
+    return {f: bt601_i420_to_rgb(d.to_ndarray()) for (f, _), d in zip(samples, frames)}
+
+
+@pytest.mark.parametrize("codec", ["av1", "h264"])
+def test_logged_video_decodes_back_to_the_synthetic_session_images(tmp_path, codec):
+    from contact_viz.synth import SynthParams, generate_session
+    from contact_viz.viz.video import VideoParams, psnr_db
+
+    root = tmp_path / "synth"
+    generate_session(root, SynthParams(phantom="cup", frames=14, seed=3, width=320, height=180, fps=10))
+    # right_step=1: both streams at the session's size (the half-size right stream: test_right_video_at_half_size)
+    options = DebuggerOptions(video=VideoParams(codec=codec, keyframe_interval_s=0.5), right_step=1)
+    session, summary, rec = run(root, tmp_path / "video.rrd", options)
+    keyframes = rec.values(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:is_keyframe")
+    assert sorted(f for f, v in keyframes.items() if v.as_py()[0]) == [0, 5, 10]  # every 0.5 s at 10 frames/s
+    import cv2
+
+    for side, entity in (("left", rerun_log.ENTITY_LEFT_IMAGE), ("right", rerun_log.ENTITY_RIGHT_IMAGE)):
+        decoded = decode_logged_video(rec, entity)
+        assert sorted(decoded) == list(range(14))
+        sources = [cv2.imread(str(session.image_path(side, i)))[:, :, ::-1] for i in range(14)]
+        assert decoded[0].shape == sources[0].shape
+        psnrs = [psnr_db(decoded[i], sources[i]) for i in range(14)]
+        # at this tiny size a frame of fast motion costs a few dB; 1080p sessions: 41 dB and more on every frame
+        # (benchmarks/bench_viewer.py prints it)
+        assert np.median(psnrs) >= 38.0 and min(psnrs) >= 34.0, (side, psnrs)
+
+
+def test_cli_images_options(session_dir, tmp_path):
+    from typer.testing import CliRunner
+
+    from contact_viz.cli import app
+
+    runner = CliRunner()
+    bad = runner.invoke(app, ["view", str(session_dir), "--images", "gif", "--save", str(tmp_path / "x.rrd")])
+    assert bad.exit_code == 2 and "--images" in bad.output and "video, jpeg, raw" in bad.output
+    assert not (tmp_path / "x.rrd").exists()
+    bad = runner.invoke(app, ["view", str(session_dir), "--video-codec", "vp9", "--save", str(tmp_path / "x.rrd")])
+    assert bad.exit_code == 2 and "--video-codec" in bad.output
+    out = tmp_path / "h264.rrd"
+    ok = runner.invoke(app, ["view", str(session_dir), "--video-codec", "h264", "--end", "3", "--save", str(out)])
+    assert ok.exit_code == 0, ok.output
+    rec = Recording(out)
+    assert rec.static[(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:codec")].as_py() == [rr.VideoCodec.H264.value]
+    assert rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample") == [0, 1, 2]
+    out = tmp_path / "jpeg.rrd"
+    ok = runner.invoke(app, ["view", str(session_dir), "--images", "jpeg", "--end", "2", "--save", str(out)])
+    assert ok.exit_code == 0, ok.output
+    assert Recording(out).frames(rerun_log.ENTITY_LEFT_IMAGE, "EncodedImage:blob") == [0, 1]
+
+
+def test_right_video_at_half_size(default_run, session_dir):
+    import cv2
+
+    from contact_viz.viz.video import psnr_db
+
+    session, _, rec = default_run
+    decoded = decode_logged_video(rec, rerun_log.ENTITY_RIGHT_IMAGE)
+    assert sorted(decoded) == list(range(N_FRAMES))
+    for index, rgb in decoded.items():
+        half = cv2.imread(str(session.image_path("right", index)), cv2.IMREAD_REDUCED_COLOR_2)[:, :, ::-1]
+        assert rgb.shape == half.shape == (H // 2, W // 2, 3)
+        # 160x90 px of random 2 px colour blocks is the worst case of 4:2:0 video (1080p: benchmarks/bench_viewer.py)
+        assert psnr_db(rgb, half) >= 28.0

@@ -12,12 +12,38 @@ from typing import Annotated, Optional
 
 import typer
 
+from contact_viz.cli_edge import EdgeGroup
+
 app = typer.Typer(
+    cls=EdgeGroup,  # bad input: one error line and exit 2 (contact_viz.cli_edge)
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
-    help="Visual debugger for tool-tissue contact detection from stereo depth.",
+    rich_markup_mode=None,  # plain help: no defaults cut at 80 columns, "[default: ...]" is text, not markup
+    help="Visual debugger for tool-tissue contact detection from stereo depth.\n\n"
+         "`contact-viz SESSION [OPTIONS]` is short for `contact-viz view SESSION [OPTIONS]`.",
 )
+
+
+def _version(value: bool) -> None:
+    if value:
+        from contact_viz import __version__
+
+        typer.echo(f"contact-viz {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main_options(
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Show tracebacks and the log lines of OpenCV "
+                       "and Rerun (may also follow the command).")] = False,
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                       help="Print the version and exit.")] = False,
+) -> None:
+    """Visual debugger for tool-tissue contact detection from stereo depth."""
+    from contact_viz import console
+
+    console.quiet_libraries(verbose or console.VERBOSE)
 
 
 def _fail(message: str) -> None:
@@ -48,6 +74,36 @@ def _progress():
                     TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
 
 
+class _LazyProgress:
+    """A progress bar that appears with the first update, so a command refused up front prints none."""
+
+    def __init__(self, description: str, total: int | None) -> None:
+        self.description, self.total, self.progress, self.task = description, total, None, None
+
+    def update(self, **fields) -> None:
+        if self.progress is None:
+            self.progress = _progress()
+            self.progress.start()
+            self.task = self.progress.add_task(self.description, total=self.total)
+        self.progress.update(self.task, **fields)
+
+    def __enter__(self) -> "_LazyProgress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+
+
+def _print_report(report) -> None:
+    """The frame warnings of a run, then its summary line (contact_viz.console.FrameReport)."""
+    for line in report.lines:
+        typer.secho(line, fg=typer.colors.YELLOW, err=True)
+    summary = report.summary()
+    if summary:
+        typer.secho(summary, fg=typer.colors.YELLOW, err=True)
+
+
 def _inside(path: Path, directory: Path) -> bool:
     try:
         path.resolve().relative_to(directory.resolve())
@@ -68,6 +124,10 @@ def _resolve_params(params_file: Optional[Path], contact_force: float):
     """PatchParams from --params (defaults otherwise) and LabelParams from --contact-force; exits on error."""
     from contact_viz.params import LabelParams, PatchParams, read_patch_params
 
+    import math
+
+    if not (math.isfinite(contact_force) and contact_force > 0):
+        _fail(f"--contact-force: expected a force > 0 N, got {contact_force:g}")
     try:
         params = PatchParams() if params_file is None else read_patch_params(params_file)
         return params, LabelParams(contact_force_n=contact_force)
@@ -89,6 +149,7 @@ def extract(
         "at most 8].")] = None,
 ) -> None:
     """Compute the minimum-distance patch of every frame and write one row per frame."""
+    from contact_viz.console import FrameReport, check_output_file
     from contact_viz.pipeline.allocator import keep_freed_memory
     from contact_viz.pipeline.parallel import DEFAULT_PROCESSES, ProcessPool, WorkerError
 
@@ -108,29 +169,24 @@ def extract(
             _fail(str(exc))
         typer.echo(session.depth_note, err=True)
         output = output or Path("results") / session.name / "features.csv"
-        if _inside(output, session.root):
-            _fail(f"{output}: refusing to write inside the session directory {session.root}; choose another -o")
-        with warnings.catch_warnings(record=True) as caught, _progress() as progress:
-            warnings.simplefilter("always", BadFrameWarning)
+        check_output_file(output, "-o/--output", session_root=session.root, example="features.csv")
+        check_output_file(output.with_name(output.name + ".json"), "-o/--output (its .json)")
+        with warnings.catch_warnings(record=True), _progress() as progress:
+            warnings.simplefilter("always", BadFrameWarning)  # the rows carry the same; reported below
             task = progress.add_task(f"extract {session.name}", total=len(session))
             try:
                 rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
                                         pool=pool)
             except WorkerError as exc:
                 _fail(str(exc))
-    bad: list[str] = []
-    for w in caught:
-        if issubclass(w.category, BadFrameWarning):
-            bad.append(str(w.message))
-        else:
-            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-    for message in bad:
-        typer.secho(f"warning: {message}", fg=typer.colors.YELLOW, err=True)
+    report = FrameReport.from_rows(rows, lambda layer, stem: session.layer_file(layer, stem))
+    _print_report(report)
+    bad = sum(1 for r in rows if r["reason"] == "bad_frame")
+    if bad == len(rows):
+        _fail(f"{session.root}: no frame could be read ({report.summary()}); nothing written")
     write_features(rows, output, run_config(session, patch_params=params, label_params=label_params))
     found = sum(1 for r in rows if r["distance_m"] != "")
-    typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {len(bad)} unreadable")
-    if len(bad) == len(rows):
-        _fail(f"no frame of {session.root} could be read")
+    typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {bad} unreadable")
 
 
 @app.command()
@@ -149,13 +205,12 @@ def synth(
         _fail(f"--phantom must be one of {', '.join(PHANTOMS)}; got {phantom!r}")
     width, height = _parse_size(size)
     params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height)
-    with _progress() as progress:
-        task = progress.add_task(f"synth {phantom}", total=frames)
+    with _LazyProgress(f"synth {phantom}", frames) as progress:  # no bar before the target is accepted
         try:
             path = generate_session(out_dir, params, overwrite=overwrite,
-                                    progress=lambda done, total: progress.update(task, completed=done))
+                                    progress=lambda done, total: progress.update(completed=done))
         except (FileExistsError, ValueError) as exc:
-            _fail(str(exc))
+            _fail(str(exc).replace("pass overwrite=True", "pass --overwrite"))
     typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}")
 
 
@@ -170,6 +225,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     """Features for fit / evaluate / predict, each source either a session directory (extracted
     with ``params``, cached) or a features CSV written by `contact-viz extract`, whose saved
     configuration must have the same patch parameters as ``params``."""
+    from contact_viz.console import FrameReport
     from contact_viz.pipeline.allocator import keep_freed_memory
     from contact_viz.errors import SessionError
     from contact_viz.pipeline.extract import cached_features, feature_arrays, read_features, read_features_config
@@ -181,6 +237,9 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     out = []
     for source in sources:
         try:
+            if source.is_file() and source.suffix.lower() != ".csv":
+                _fail(f"{source}: expected a session directory or a features CSV from `contact-viz extract`, "
+                      f"found a {source.suffix or 'plain'} file")
             if source.is_file():
                 file_params, name = read_features_config(source)
                 check_params(params, file_params, str(source))
@@ -199,6 +258,10 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
                         progress.update(task, completed=len(session), description=f"features {name} (cached)")
         except (SessionError, ValueError, KeyError) as exc:
             _fail(str(exc))
+        report = FrameReport.from_rows(rows)
+        if report.n_frames:  # the warning lines are in the features; here only the count
+            typer.secho(f"{name}: {report.summary()} (see `contact-viz extract {source}` for each)",
+                        fg=typer.colors.YELLOW, err=True)
         signal, labels = feature_arrays(rows)
         out.append(_Features(name, [str(r["frame"]) for r in rows], signal, labels))
     names = [f.name for f in out]
@@ -217,13 +280,19 @@ def fit(
     cache_dir: CacheDir = None,
 ) -> None:
     """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions."""
+    from contact_viz.console import check_output_file, session_training_problem
     from contact_viz.model.hmm import LosoEnsemble
     from contact_viz.model.model_file import ContactModel, save_model
 
     params, label_params = _resolve_params(params_file, contact_force)
     if len(train_sessions) < 2:
         _fail(f"fit needs at least 2 training sessions for leave-one-session-out, got {len(train_sessions)}")
+    check_output_file(output, "-o/--output", example="model.json")
     features = _load_features(train_sessions, params, label_params, object_id, cache_dir)
+    problem = session_training_problem([f.name for f in features], [f.labels for f in features],
+                                       [f.signal for f in features])
+    if problem:
+        _fail(problem)
     try:
         ensemble = LosoEnsemble().fit([f.signal for f in features], [f.labels for f in features],
                                       session_names=[f.name for f in features])
@@ -266,10 +335,13 @@ def evaluate(
     cache_dir: CacheDir = None,
 ) -> None:
     """Score held-out sessions: the Table-1 metrics per session and their macro mean."""
-    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, metrics_table, per_frame_rows, score_session
+    from contact_viz.console import check_output_file
+    from contact_viz.model.evaluation import metrics_table, score_session
     from contact_viz.model.metrics import format_table
-    from contact_viz.paper.tables import write_per_frame
 
+    for path, option in ((per_frame, "--per-frame"), (json_out, "--json")):
+        if path is not None:
+            check_output_file(path, option, example="metrics.json" if option == "--json" else "per_frame.csv")
     model, features = _model_and_features(model_path, test_sessions, object_id, cache_dir)
     try:
         scores = [score_session(model.predict_proba, model.threshold, f.name, f.frames, f.signal, f.labels)
@@ -277,6 +349,7 @@ def evaluate(
         table = metrics_table(scores, model.threshold)
     except ValueError as exc:
         _fail(str(exc))
+    _write_evaluation(per_frame, json_out, scores, table, model, model_path)  # before anything is printed
     typer.echo(format_table(table, style="text"))
     for note in [n for row in table.values() for n in row.get("notes", [])]:
         typer.echo(f"note: {note}")
@@ -284,6 +357,12 @@ def evaluate(
         typer.echo("\n" + format_table(table, style="markdown"))
     if latex:
         typer.echo("\n" + format_table(table, style="latex"))
+
+
+def _write_evaluation(per_frame, json_out, scores, table, model, model_path) -> None:
+    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows
+    from contact_viz.paper.tables import write_per_frame
+
     if per_frame is not None:
         write_per_frame(per_frame, PER_FRAME_COLUMNS, per_frame_rows(scores))
     if json_out is not None:
@@ -305,9 +384,11 @@ def predict(
     cache_dir: CacheDir = None,
 ) -> None:
     """Contact posteriors for a session, with or without labels."""
+    from contact_viz.console import check_output_file
     from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
     from contact_viz.paper.tables import write_per_frame
 
+    check_output_file(output, "-o/--output", example="predictions.csv")
     model, (features,) = _model_and_features(model_path, [session_dir], object_id, cache_dir)
     scores = score_session(model.predict_proba, model.threshold, features.name, features.frames,
                            features.signal, features.labels)
@@ -336,15 +417,26 @@ def view(
     start: Annotated[int, typer.Option(min=0, help="First frame index.")] = 0,
     end: Annotated[Optional[int], typer.Option(help="Stop before this frame index.")] = None,
     stride: Annotated[int, typer.Option(min=1, help="Show every n-th frame.")] = 1,
-    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="JPEG quality of re-encoded images.")] = 85,
-    raw_images: Annotated[bool, typer.Option(help="Log raw RGB instead of JPEG (large).")] = False,
+    images: Annotated[str, typer.Option(help="How the images are logged: video (AV1 stream, smallest), jpeg "
+                      "(JPEG files as they are) or raw (decoded RGB, exact, large).")] = "video",
+    video_codec: Annotated[str, typer.Option(help="--images video: av1 (the native viewer decodes it itself) or "
+                           "h264 (faster to encode; the native viewer needs FFmpeg on PATH).")] = "av1",
+    video_crf: Annotated[Optional[int], typer.Option(help="--images video: quality, lower = better and larger "
+                         "[default: 30 for AV1 (0-63), 23 for H.264 (0-51)].")] = None,
+    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="--images jpeg: quality of re-encoded "
+                            "images.")] = 85,
     right: Annotated[bool, typer.Option("--right/--no-right", help="Log the right image.")] = True,
-    depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 3,
+    right_step: Annotated[int, typer.Option(min=1, max=2, help="--images video: log the right image at 1/n of its "
+                          "size (2: half, the size its pane shows; 1: full).")] = 2,
+    depth_step: Annotated[int, typer.Option(min=1, help="Log every n-th depth pixel (1 = full resolution).")] = 6,
     points: Annotated[bool, typer.Option("--points/--no-points", help="Log the RGB point cloud.")] = True,
-    point_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel away from the patch.")] = 6,
-    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 1.5,
-    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: full density within this of the "
+    point_stride: Annotated[Optional[int], typer.Option(min=0, help="Point cloud: every n-th pixel away from the "
+                            "patch (0 = none) [default: image width / 120, 16 at 1080p].")] = None,
+    voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 4.0,
+    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: the RGB points within this of the "
                               "patch centre, px.")] = 40,
+    near_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel near the patch "
+                           "(1 = all).")] = 2,
     grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
     object_id: ObjectId = None,
@@ -355,41 +447,62 @@ def view(
     """Run the pipeline frame by frame and log everything to one Rerun timeline.
 
     With --model the model's patch parameters are used (--params is then an error if it differs)."""
+    from contact_viz.console import FrameReport, check_connect_url, check_output_file
     from contact_viz.errors import SessionError
     from contact_viz.io.session import open_session
 
     params, label_params = _resolve_params(params_file, contact_force)
+    if connect is not None:
+        check_connect_url(connect)
     model = None
     try:
         if model_path is not None:
-            from contact_viz.model.model_file import check_params, load_model
+            from contact_viz.model.model_file import load_model
+            from contact_viz.params import to_dict
 
             model = load_model(model_path)
-            if params_file is not None:
-                check_params(model.patch_params, params, str(params_file))
+            fitted, given = to_dict(model.patch_params), to_dict(params)
+            diff = [f"{k}: model {fitted[k]!r}, --params {given[k]!r}" for k in fitted
+                    if params_file is not None and fitted[k] != given[k]]
+            if diff:
+                _fail(f"--params {params_file}: differs from the patch parameters {model_path} was fitted with "
+                      f"({'; '.join(diff)}); drop --params (view then uses the model's) or fit a model with "
+                      "these parameters")
             params = model.patch_params
         session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
-    from contact_viz.viz.debugger import DebuggerOptions, run_debugger
+    from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames
     from contact_viz.geometry.pointcloud import CloudParams
     from contact_viz.viz.rerun_log import default_blueprint, open_recording
+    from contact_viz.viz.video import VideoParams
 
+    try:
+        select_frames(len(session), start, end, stride)  # before any sink is opened
+    except ValueError as exc:
+        _fail(f"--{str(exc)}")
+    from contact_viz.viz.debugger import IMAGE_MODES
+    from contact_viz.viz.video import CODECS
+
+    if images not in IMAGE_MODES:
+        _fail(f"--images: expected one of {', '.join(IMAGE_MODES)}, got {images!r}")
+    if video_codec not in CODECS:
+        _fail(f"--video-codec: expected one of {', '.join(CODECS)}, got {video_codec!r}")
     if spawn is None:
         spawn = _has_display() and save is None and not serve and connect is None
     if not (spawn or serve or connect or save):
         save = Path("results") / session.name / "view.rrd"
         typer.echo(f"no display here: saving the recording to {save} (open it with `rerun {save}`)")
     if save is not None:
-        if _inside(save, session.root):
-            _fail(f"{save}: refusing to write inside the session directory {session.root}")
-        save.parent.mkdir(parents=True, exist_ok=True)
+        check_output_file(save, "--save", session_root=session.root, example="view.rrd")
     try:
         options = DebuggerOptions(
-            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, raw_images=raw_images,
-            with_right=right, depth_step=depth_step, points=points,
-            cloud=CloudParams(near_radius_px=near_radius_px, stride_px=point_stride, voxel_m=voxel_mm / 1000),
+            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, images=images,
+            video=VideoParams(codec=video_codec, crf=video_crf),
+            with_right=right, right_step=right_step, depth_step=depth_step, points=points,
+            cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
+                              voxel_m=voxel_mm / 1000),
             patch_params=params,
         )
         opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
@@ -401,13 +514,17 @@ def view(
         typer.echo(f"web viewer: {opened.web_viewer_url}")
     if model is None:
         typer.echo("no --model: the HMM posterior is not shown (make one with `contact-viz fit TRAIN... -o model.json`)")
+    report = FrameReport()
     try:
-        with _progress() as progress:
+        with warnings.catch_warnings(record=True) as caught, _progress() as progress:
+            warnings.simplefilter("always")
             task = progress.add_task(f"view {session.name}", total=None)
             summary = run_debugger(session, opened.rec, options, model=model,
                                    progress=lambda done, total: progress.update(task, completed=done, total=total))
     except (ValueError, IndexError) as exc:
         _fail(str(exc))
+    report.add_warnings(caught)
+    _print_report(report)
     for line in summary.lines():
         typer.echo(line)
     if save is not None:
@@ -433,9 +550,12 @@ def depth(
     workers: Annotated[int, typer.Option(min=1, help="Frames computed in parallel.")] = 2,
 ) -> None:
     """Precompute the depth of a session that has no depth/ or disparity/ (SGBM, cached outside it)."""
+    from contact_viz.console import check_output_dir
     from contact_viz.errors import SessionError
     from contact_viz.pipeline.depth import run_depth_command
 
+    if output is not None:
+        check_output_dir(output, "-o/--output")
     with _progress() as progress:
         task = progress.add_task(f"depth {session_dir.name}", total=None)
         try:
@@ -473,15 +593,35 @@ def import_(
         typer.echo(line)
 
 
-_COMMANDS = ("extract", "synth", "fit", "evaluate", "predict", "view", "depth", "import")
+def _commands() -> list[str]:
+    return [c.name or c.callback.__name__.rstrip("_") for c in app.registered_commands]
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point. `contact-viz SESSION_DIR [options]` means `contact-viz view SESSION_DIR`."""
+    """Console-script entry point. `contact-viz SESSION_DIR [options]` means `contact-viz view SESSION_DIR`;
+    a word that is neither a command nor an existing path, followed by more arguments or close to a
+    command's name, is a misspelled command."""
+    import difflib
     import sys
 
+    from contact_viz import console
+
     args = list(sys.argv[1:] if argv is None else argv)
-    if args and not args[0].startswith("-") and args[0] not in _COMMANDS:
+    if "--verbose" in args or "-v" in args[:1]:  # accepted anywhere, also after the command
+        args = [a for a in args if a != "--verbose"]
+        if args[:1] == ["-v"]:
+            args = args[1:]
+        console.VERBOSE = True
+    console.quiet_libraries(console.VERBOSE)  # before OpenCV, workers or Rerun start
+    commands = _commands()
+    if args and not args[0].startswith("-") and args[0] not in commands:
+        word = args[0]
+        close = difflib.get_close_matches(word, commands, n=1, cutoff=0.6)
+        if not Path(word).exists() and "/" not in word and (close or len(args) > 1 and not args[1].startswith("-")):
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            typer.secho(f"error: no such command '{word}'{hint}; commands: {', '.join(commands)}; "
+                        "`contact-viz SESSION` opens the viewer on a session directory", fg=typer.colors.RED, err=True)
+            raise SystemExit(2)
         args.insert(0, "view")
     app(args=args, prog_name="contact-viz")
 

@@ -17,5 +17,19 @@ class SessionError(ValueError):
         super().__init__(f"{self.path}: {expected}")
 
 
+class SessionFormatError(SessionError):
+    """A frame's file decodes but holds the wrong kind of data (shape, dtype, channels, bit depth).
+
+    Such a fault is usually shared by a whole folder: when the first frame's file has it (and so
+    does the last's), the session is refused up front (contact_viz.io.session.open_session)
+    instead of every frame being skipped one by one.
+    """
+
+
+class NoPatchWarning(UserWarning):
+    """A frame was read but its input gives nothing to measure (no valid depth around the tool,
+    a mask without background); the message names the file (contact_viz.console.no_patch_message)."""
+
+
 class SessionWarning(UserWarning):
     """Something in a session is odd but usable (e.g. a CSV row for a stem not in left/)."""

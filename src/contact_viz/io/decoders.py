@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -15,8 +16,8 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from contact_viz.errors import SessionError
-from contact_viz.io.npy_rows import read_npy_rows
+from contact_viz.errors import SessionError, SessionFormatError
+from contact_viz.io.npy_rows import TruncatedNpyError, data_end, read_header, read_npy_rows
 from contact_viz.params import MM_PER_M
 
 
@@ -79,13 +80,13 @@ def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
         return ids == object_id if object_id is not None else ids != 0
     if ids.ndim == 3 and ids.shape[2] in (3, 4):
         if object_id is not None:
-            raise SessionError(
+            raise SessionFormatError(
                 path,
-                f"expected a palettized or single-channel mask to select object_id={object_id}, "
+                f"expected a palettized or single-channel mask to select --object-id {object_id}, "
                 f"found {ids.shape[2]} channels",
             )
         return np.any(ids[:, :, :3] != 0, axis=2)
-    raise SessionError(path, f"expected {what}, found an array of shape {ids.shape}")
+    raise SessionFormatError(path, f"expected {what}, found an array of shape {ids.shape}")
 
 
 def _invalid_to_nan(depth_m: np.ndarray) -> np.ndarray:
@@ -105,6 +106,9 @@ def _loading(path: Path, what: str) -> Iterator[None]:
         raise  # already names the file
     except FileNotFoundError as exc:
         raise SessionError(path, f"expected {what}, file missing") from exc
+    except TruncatedNpyError as exc:
+        raise SessionError(path, f"expected {what}, found a truncated file ({exc.size} bytes, its header "
+                                 f"announces {exc.expected})") from exc
     except DECODE_ERRORS as exc:
         raise SessionError(path, f"expected {what}, could not load it ({type(exc).__name__}: {exc})") from exc
 
@@ -113,14 +117,14 @@ def _check_float_2d(path: Path, what: str, dtype: object, shape: object) -> None
     """SessionError unless ``dtype``/``shape`` describe a 2-D float32 or float64 array."""
     is_float = isinstance(dtype, np.dtype) and dtype.kind == "f" and dtype.itemsize in (4, 8)
     if not is_float or not isinstance(shape, tuple) or len(shape) != 2:
-        raise SessionError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
+        raise SessionFormatError(path, f"expected {what} (float32 or float64), found dtype {dtype} with shape {shape}")
 
 
 def _check_image_shape(path: Path, shape: tuple[int, ...], image_size: tuple[int, int], what: str) -> None:
     """SessionError unless ``shape`` (an array's, channels ignored) is ``image_size`` (H, W),
     the left images' size."""
     if tuple(shape[:2]) != tuple(image_size):
-        raise SessionError(
+        raise SessionFormatError(
             path,
             f"expected a {what} of {image_size[0]}x{image_size[1]} px (height x width, as the left images), "
             f"found {shape[0]}x{shape[1]}",
@@ -128,10 +132,19 @@ def _check_image_shape(path: Path, shape: tuple[int, ...], image_size: tuple[int
 
 
 def _load_float_npy(path: Path, what: str) -> np.ndarray:
-    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``."""
-    with _loading(path, what):
-        raw = np.load(path, allow_pickle=False)
-    _check_float_2d(path, what, getattr(raw, "dtype", type(raw).__name__), getattr(raw, "shape", None))
+    """A 2-D float32/float64 .npy as a writable, C-contiguous float32 array; SessionError naming ``what``.
+
+    The header and the file's length are checked by the same code as the row reader's
+    (read_depth_rows_m), so both accept and refuse the same files with the same message."""
+    with _loading(path, what), open(path, "rb") as handle:
+        offset, dtype, shape, _ = read_header(handle)
+        _check_float_2d(path, what, dtype, shape)
+        end = data_end(offset, dtype, shape)
+        size = os.fstat(handle.fileno()).st_size
+        if size < end:
+            raise TruncatedNpyError(size, end)
+        handle.seek(0)
+        raw = np.load(handle, allow_pickle=False)
     return np.ascontiguousarray(raw, dtype=np.float32)
 
 
@@ -153,14 +166,14 @@ def read_depth_m(path: Path) -> np.ndarray:
         raw = _decode(path, what, _imdecode_unchanged)
         if raw.dtype != np.uint16 or raw.ndim != 2:
             channels = 1 if raw.ndim == 2 else raw.shape[2]
-            raise SessionError(
+            raise SessionFormatError(
                 path, f"expected {what}, found {raw.dtype.itemsize * 8}-bit {channels}-channel ({raw.dtype})"
             )
         depth = raw.astype(np.float32)
         depth /= np.float32(MM_PER_M)
         depth.flags.writeable = False
         return depth
-    raise SessionError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
+    raise SessionFormatError(path, "expected a depth file ending in .npy (float32 m) or .png (uint16 mm)")
 
 
 def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, int]) -> np.ndarray:

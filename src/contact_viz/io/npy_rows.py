@@ -3,7 +3,8 @@
 The patch of a frame needs the depth only in the rows around the tool (about 40% of a 1080p
 frame), so `contact-viz extract` reads just those (contact_viz.io.session.Session.load_depth_rows).
 The .npy header is parsed with NumPy's own reader (numpy.lib.format); the rows are read with
-one positioned read into the output array.
+one positioned read into the output array. A Fortran-ordered file (``np.save`` of a transposed
+or ``np.asfortranarray`` array, which ``np.load`` reads) has no contiguous rows: it is read whole.
 """
 
 from __future__ import annotations
@@ -19,6 +20,22 @@ import numpy as np
 
 _MAGIC = b"\x93NUMPY"
 _HEADER_LENGTH_FORMAT = {1: "<H", 2: "<I", 3: "<I"}  # struct format of the header length, by major version
+
+
+class TruncatedNpyError(ValueError):
+    """The file is shorter than its header announces."""
+
+    def __init__(self, size: int, expected: int) -> None:
+        self.size, self.expected = size, expected
+        super().__init__(f"truncated: {size} bytes, the header announces {expected}")
+
+
+def data_end(offset: int, dtype: np.dtype, shape: tuple[int, ...]) -> int:
+    """The byte length a .npy file with this header (data at ``offset``) must have at least."""
+    count = 1
+    for n in shape:
+        count *= int(n)
+    return offset + count * dtype.itemsize
 
 
 @functools.lru_cache(maxsize=32)
@@ -60,34 +77,42 @@ def read_npy_rows(
     """Rows ``row0`` to ``row1 - 1`` of the 2-D array stored in the .npy file ``path``, as a
     (row1 - row0, W) array of the file's dtype, and the stored array's full (H, W) shape.
 
-    Only those rows are read. ``check(dtype, shape)``, when given, is called with the stored
-    array's dtype and shape as soon as the header is read; what it raises propagates. Raises
-    ValueError when the file does not hold a 2-D, C-ordered, non-object array, when it is
-    shorter than its header says, or when the rows are out of range; OSError when it cannot
-    be opened or read.
+    Only those rows are read (all of a Fortran-ordered file). ``check(dtype, shape)``, when
+    given, is called with the stored array's dtype and shape as soon as the header is read; what
+    it raises propagates. Raises ValueError when the file does not hold a 2-D non-object array or
+    when the rows are out of range, TruncatedNpyError (a ValueError) when it is shorter than its
+    header says; OSError when it cannot be opened or read.
     """
     with open(path, "rb", buffering=0) as handle:
         offset, dtype, shape, fortran_order = read_header(handle)
         if check is not None:
             check(dtype, shape)
-        if len(shape) != 2 or fortran_order or dtype.hasobject:
-            order = "Fortran" if fortran_order else "C"
-            raise ValueError(f"expected a 2-D C-ordered numeric array, found shape {shape}, dtype {dtype}, "
-                             f"{order} order")
+        if len(shape) != 2 or dtype.hasobject:
+            raise ValueError(f"expected a 2-D numeric array, found shape {shape}, dtype {dtype}")
         height, width = shape
         row_bytes = width * dtype.itemsize
         size = os.fstat(handle.fileno()).st_size
-        if size < offset + height * row_bytes:
-            raise ValueError(f"truncated: {size} bytes, the header announces {offset + height * row_bytes}")
+        end = data_end(offset, dtype, shape)
+        if size < end:
+            raise TruncatedNpyError(size, end)
         if not 0 <= row0 <= row1 <= height:
             raise ValueError(f"rows {row0}..{row1 - 1} out of range for an array of {height} rows")
+        if fortran_order:  # column-major: every row is spread over the whole file
+            whole = np.empty((width, height), dtype)
+            _read_into(handle, offset, whole, size, end)
+            return np.ascontiguousarray(whole.T[row0:row1]), (height, width)
         rows = np.empty((row1 - row0, width), dtype)
-        view = memoryview(rows.reshape(-1).view(np.uint8))
-        handle.seek(offset + row0 * row_bytes)
-        filled = 0
-        while filled < view.nbytes:
-            n = handle.readinto(view[filled:])
-            if not n:
-                raise ValueError("file ended while reading its rows")
-            filled += n
+        _read_into(handle, offset + row0 * row_bytes, rows, size, end)
     return rows, (height, width)
+
+
+def _read_into(handle, position: int, out: np.ndarray, size: int, end: int) -> None:
+    """Fill the C-contiguous ``out`` with the bytes of ``handle`` from ``position`` on."""
+    view = memoryview(out.reshape(-1).view(np.uint8))
+    handle.seek(position)
+    filled = 0
+    while filled < view.nbytes:
+        n = handle.readinto(view[filled:])
+        if not n:  # the file shrank since its size was taken
+            raise TruncatedNpyError(size, end)
+        filled += n

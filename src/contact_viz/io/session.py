@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from contact_viz.io.calibration import Calibration, Rectification, StereoCalibration, read_calibration, read_only
-from contact_viz.errors import SessionError, SessionWarning
+from contact_viz.errors import SessionError, SessionFormatError, SessionWarning
 from contact_viz.io.prefetch import prefetched
 from contact_viz.params import LabelParams
 from contact_viz.io.decoders import (
@@ -230,6 +230,14 @@ class Session:
         files = self._left_files if side == "left" else self._right_files
         return files.get(self.stems[index])
 
+    def layer_file(self, layer: str, stem: str) -> Path | None:
+        """The file frame ``stem``'s "mask" or "depth" (depth/ or disparity/) is read from; None
+        when there is none (a missing file, SGBM depth)."""
+        files = {"mask": self._mask_files, "depth": self._depth_files}.get(layer)
+        if files is None:
+            raise ValueError(f"layer must be 'mask' or 'depth', got {layer!r}")
+        return files.get(stem)
+
     def _image(self, side: str, stem: str, decoded: dict[str, np.ndarray]) -> np.ndarray:
         """Frame ``stem``'s ``side`` image, (H, W, 3) uint8 RGB, rectified if needed; memoized in ``decoded``."""
         if side not in decoded:
@@ -284,6 +292,37 @@ class Session:
         return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
             "cached" if cached else "computed"
         )
+
+    def check_format(self) -> None:
+        """Refuse up front a mask or depth folder whose files all hold the wrong kind of data.
+
+        The first frame's mask and depth (or disparity) file are decoded; a shape, dtype,
+        channel or bit-depth fault there (:class:`SessionFormatError`) that the last frame's
+        file shares is a session error, raised naming the first file, so that no command
+        skips every frame one by one and writes a table of bad frames. A fault of the first
+        frame alone, or one that is not about the format (missing, unreadable, truncated),
+        stays a per-frame problem: that frame is skipped with a warning. SGBM depth is not
+        decoded here (it is computed from the images, whose size is checked per frame).
+        """
+        probes = sorted({0, len(self) - 1})
+        layers = []
+        if self._mask_files:
+            layers.append(lambda stem: self._mask(stem))
+        if self.depth_source != "sgbm":
+            layers.append(lambda stem: self._depth(stem, {}))
+        for decode in layers:
+            found = []
+            for index in probes:
+                try:
+                    decode(self.stems[index])
+                except SessionFormatError as error:
+                    found.append(error)
+                except SessionError:
+                    break
+                else:
+                    break
+            if len(found) == len(probes):
+                raise found[0]
 
     def load_depth(self, index: int, with_origin: bool = False):
         """Frame ``index``'s depth (H, W) float32 m (NaN invalid), or a BadFrame.
@@ -422,11 +461,15 @@ def open_session(
     if object_id is not None and (isinstance(object_id, bool) or not isinstance(object_id, int) or object_id < 1):
         raise ValueError(f"object_id must be a positive integer (0 is background) or None, got {object_id!r}")
     root = Path(path).expanduser()
-    if not root.exists():
-        raise SessionError(root, "missing: expected a session directory (left/, masks/, depth/, K.txt)")
-    if not root.is_dir():
-        raise SessionError(root, "expected a session directory (left/, masks/, depth/, K.txt), found a file")
-    root = root.resolve()
+    expected = "a session directory (left/, masks/ and K.txt; depth/ optional, see the README)"
+    try:
+        if not root.exists():
+            raise SessionError(root, f"missing: expected {expected}")
+        if not root.is_dir():
+            raise SessionError(root, f"expected {expected}, found a file")
+        root = root.resolve(strict=True)
+    except OSError as exc:  # a symbolic link loop, a path through a file, no permission
+        raise SessionError(root, f"expected {expected}, could not open it ({exc.strerror or exc})") from None
 
     meta = _read_session_json(root / "session.json")
     left_dir = root / "left"
@@ -469,7 +512,7 @@ def open_session(
         labels[manual_index] = manual_contact
         label_source[manual_index] = "manual"
 
-    return Session(
+    session = Session(
         root=root,
         name=meta.get("name") or root.name,
         phantom=meta.get("phantom"),
@@ -493,3 +536,5 @@ def open_session(
         stereo=stereo,
         sgbm_cache=sgbm_cache,
     )
+    session.check_format()
+    return session

@@ -232,7 +232,25 @@ def _read_frames_csv(path: Path, stems: list[str]) -> np.ndarray:
     if missing:
         shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
         raise SessionError(path, f"expected a timestamp for every frame in left/, missing {len(missing)}: {shown}")
+    check_times_increase(path, stems, out, {int(i): line for (line, _), i in zip(body, matched.tolist()) if i >= 0})
     return out
+
+
+def check_times_increase(path: Path, stems: list[str], times_s: np.ndarray, line_of: dict[int, int]) -> None:
+    """SessionError naming the lines when frame times (in frame order) go backwards or repeat:
+    the causal filter runs in frame order, so the `time` timeline must follow it."""
+    bad = np.flatnonzero(np.diff(times_s) <= 0)
+    if not bad.size:
+        return
+    i = int(bad[0])
+    verb = "repeats" if times_s[i + 1] == times_s[i] else "goes back from"
+    more = f" ({bad.size} such places)" if bad.size > 1 else ""
+    raise SessionError(
+        path,
+        f"line {line_of[i + 1]}: the time of frame {stems[i + 1]!r} ({times_s[i + 1]:.6g} s) {verb} that of the "
+        f"frame before it, {stems[i]!r} on line {line_of[i]} ({times_s[i]:.6g} s){more}; expected times that "
+        "increase in frame order (frames are ordered by the numbers in their stems)",
+    )
 
 
 def _read_force_csv(path: Path, stems: list[str], timestamps_s: np.ndarray | None, frames_csv: Path) -> np.ndarray:
@@ -306,17 +324,28 @@ def _list_stems(directory: Path, suffixes: Sequence[str]) -> dict[str, Path]:
     Two files with the same stem (e.g. 7.png and 7.jpg) are an error.
     """
     found: dict[str, Path] = {}
-    with os.scandir(directory) as entries:
-        for entry in entries:
-            suffix = os.path.splitext(entry.name)[1]
-            if suffix.lower() not in suffixes or not entry.is_file():
-                continue
-            stem = entry.name[: -len(suffix)]
-            if stem in found:
-                raise SessionError(
-                    directory, f"expected one file per frame, found both {found[stem].name} and {entry.name}"
-                )
-            found[stem] = Path(entry.path)
+    try:
+        entries = list(os.scandir(directory))
+    except OSError as exc:
+        raise SessionError(directory, f"expected a readable directory, could not list it ({exc.strerror or exc})"
+                           ) from None
+    for entry in sorted(entries, key=lambda e: e.name):
+        suffix = os.path.splitext(entry.name)[1]
+        if suffix.lower() not in suffixes:
+            continue
+        try:
+            is_file = entry.is_file()
+        except OSError as exc:  # e.g. a symbolic link loop
+            raise SessionError(entry.path, f"expected a {suffix} file, could not follow it "
+                                           f"({exc.strerror or exc})") from None
+        if not is_file:
+            continue
+        stem = entry.name[: -len(suffix)]
+        if stem in found:
+            raise SessionError(
+                directory, f"expected one file per frame, found both {found[stem].name} and {entry.name}"
+            )
+        found[stem] = Path(entry.path)
     return found
 
 

@@ -8,7 +8,7 @@ Entity tree (the README lists it too)::
 
     world                          ViewCoordinates RDF, AnnotationContext of the layer classes (static)
     world/camera/left              Pinhole from K.txt (static)
-    world/camera/left/image        left image: EncodedImage (JPEG) or Image (--raw-images)
+    world/camera/left/image        left image: VideoStream (AV1/H.264, --images video), EncodedImage (JPEG) or Image (raw)
     world/camera/left/layers       SegmentationImage of the layer classes (full resolution)
     world/camera/left/patch        Boxes2D: the N2 window of the selected patch, labelled with its distance
     world/camera/right             Transform3D (baseline along +x) + Pinhole (static)
@@ -17,7 +17,8 @@ Entity tree (the README lists it too)::
     world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m)
     world/camera/depth/layers      SegmentationImage of the layer classes on the depth grid
     world/camera/depth/patch       Boxes2D: the patch window on the depth grid
-    world/cloud/near, world/cloud/far   Points3D: RGB cloud, full density near the patch / voxel-merged elsewhere
+    world/cloud/near               Points3D: RGB cloud around the patch (every 2nd pixel)
+    world/cloud/far                Points3D: RGB cloud elsewhere, every 16th pixel merged into 4 mm voxels
     world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
     world/patch/tool               Points3D: interior pixels whose depths gave the tool depth
     world/patch/gap                Arrows3D: tool depth -> tissue along the patch centre's ray
@@ -109,6 +110,8 @@ __all__ = [
     "log_frame",
     "log_model_hint",
     "log_static",
+    "log_video_codec",
+    "log_video_samples",
     "send_known_series",
     "set_frame_time",
 ]
@@ -213,6 +216,8 @@ class FrameView:
     predicted: bool | None  # posterior >= threshold (None = no model)
     diagnostics: Sequence[Diagnostic] = ()  # checks that fired at this frame
     has_right: bool = False  # the session has a right image here (if right_* are None it is cleared)
+    left_in_video: bool = False  # the left image goes to its video stream (log_video_samples), not logged here
+    right_in_video: bool = False  # the right image goes to its video stream
     notes: Sequence[str] = ()  # other warnings of this frame (e.g. an unreadable right image)
 
 
@@ -243,10 +248,12 @@ def log_static(
     depth_K: np.ndarray,
     with_right: bool,
     with_model: bool,
+    right_step: int = 1,
 ) -> None:
     """Log what never changes: view coordinates, layer classes, cameras and the series' styles.
 
-    ``depth_K`` is the camera matrix of the decimated depth grid (every ``depth_step``-th pixel).
+    ``depth_K`` is the camera matrix of the decimated depth grid (every ``depth_step``-th pixel);
+    the right image is logged at 1 / ``right_step`` of the left image's size (its camera says so).
     """
     rec.send_recording_name(session.name)
     rec.log(
@@ -268,7 +275,8 @@ def log_static(
         rec.log(
             ENTITY_RIGHT_CAMERA,
             rr.Transform3D(translation=[session.calibration.baseline_m, 0.0, 0.0]),
-            rr.Pinhole(image_from_camera=K, resolution=[width, height], **pinhole),
+            rr.Pinhole(image_from_camera=_scaled_K(K, right_step),
+                       resolution=[-(-width // right_step), -(-height // right_step)], **pinhole),
             static=True,
         )
     rec.log(ENTITY_SERIES_DISTANCE, _series_lines("distance_mm"), static=True)
@@ -290,6 +298,14 @@ def log_static(
                             marker_sizes=[style.width_px]),
             static=True,
         )
+
+
+def _scaled_K(K: np.ndarray, step: int) -> np.ndarray:
+    """K of the image downscaled by ``step`` (fx, fy, cx, cy / step; the sub-pixel offset of the pixel centres,
+    under half a pixel of the small image, does not show)."""
+    K = np.array(K, dtype=np.float64)
+    K[:2] /= float(step)
+    return K
 
 
 def layer_legend() -> str:
@@ -421,13 +437,38 @@ def set_frame_time(rec: rr.RecordingStream, index: int, timestamp_s: float) -> N
     rec.set_time(TIMELINE_TIME, duration=float(timestamp_s))
 
 
-def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None) -> None:
+def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None,
+               in_video: bool = False) -> None:
+    if in_video:
+        return  # its sample is logged by log_video_samples when the encoder has it
     if jpeg is not None:
         rec.log(entity, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
     elif rgb is not None:
         rec.log(entity, rr.Image(rgb, color_model="RGB"))
     else:
         rec.log(entity, rr.Clear(recursive=False))
+
+
+VIDEO_CODECS = {"av1": rr.VideoCodec.AV1, "h264": rr.VideoCodec.H264}  # VideoParams.codec -> Rerun's codec
+
+
+def log_video_codec(rec: rr.RecordingStream, entities: Sequence[str], codec: str) -> None:
+    """Say (statically) that the images of ``entities`` are video streams of ``codec`` ("av1" or "h264")."""
+    for entity in entities:
+        rec.log(entity, rr.VideoStream(codec=VIDEO_CODECS[codec]), static=True)
+
+
+def log_video_samples(rec: rr.RecordingStream, entity: str, samples: Sequence, timestamps_s: np.ndarray) -> None:
+    """Log encoded video ``samples`` (contact_viz.viz.video.EncodedSample, tagged with their frame index) of
+    ``entity`` at their frames; ``timestamps_s`` maps a frame index to its session time (s)."""
+    if not samples:
+        return
+    index = np.array([s.tag for s in samples], dtype=np.int64)
+    times = [rr.TimeColumn(TIMELINE_FRAME, sequence=index),
+             rr.TimeColumn(TIMELINE_TIME, duration=np.asarray(timestamps_s, dtype=np.float64)[index])]
+    rec.send_columns(entity, indexes=times,
+                     columns=rr.VideoStream.columns(sample=[s.data for s in samples],
+                                                    is_keyframe=[s.is_keyframe for s in samples]))
 
 
 def _box(window: tuple[float, float, float, float], label: str) -> rr.Boxes2D:
@@ -464,10 +505,10 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
         raise ValueError(f"log_frame: frame {frame.index} has no patch result (a bad frame); use log_bad_frame")
     set_frame_time(rec, frame.index, frame.timestamp_s)
 
-    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb)
+    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb, view.left_in_video)
     rec.log(ENTITY_LEFT_LAYERS, rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
     if view.has_right:
-        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb)
+        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb, view.right_in_video)
     rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP))
     rec.log(ENTITY_DEPTH_LAYERS, rr.SegmentationImage(view.depth_layers, opacity=LAYER_OVERLAY_OPACITY))
 
@@ -475,8 +516,9 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
         cloud = view.cloud
         rec.log(ENTITY_CLOUD_NEAR, rr.Points3D(cloud.near_points_m, colors=cloud.near_colors,
                                                radii=[cloud.near_radius_m]))
-        rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
-                                              radii=[cloud.far_radius_m]))
+        if len(cloud.far_points_m):  # (stride_px=0: no far part)
+            rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
+                                                  radii=[cloud.far_radius_m]))
 
     geometry = view.geometry
     if patch.window_xyxy is not None and geometry is not None:

@@ -7,9 +7,11 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 
 from contact_viz.io.calibration import read_calibration
 from contact_viz.errors import SessionError
+from contact_viz.io.session_files import check_times_increase
 
 from contact_viz.io.decoders import read_image_size
 from contact_viz.io.importers.common import ImportResult, YANG_FORCE_COLUMNS, YANG_LABELS, _YANG_FRAME, _place, _place_calibration, _staging, _stem_width, _write_csv, _write_session_json
@@ -93,8 +95,9 @@ def import_yang2024(
     if orphans:
         notes.append(f"{len(orphans)} right_img/ image(s) without a left image were skipped")
     times = [float(rows[n][0]) for n in numbers]
-    if any(b <= a for a, b in zip(times, times[1:])):
-        notes.append(f"the times in {YANG_LABELS} are not strictly increasing")
+    # the reader refuses a frames.csv whose times do not increase; say so now, naming the rows
+    check_times_increase(src / YANG_LABELS, [f"img_{n}" for n in numbers], np.asarray(times),
+                         {k: n + 1 for k, n in enumerate(numbers)})
     notes.append("force is the sensor's latest value at each left frame (the recorder wrote zeros before the "
                  "first sensor message)")
     width = _stem_width(numbers[-1] + 1)
