@@ -525,7 +525,7 @@ def test_help_at_80_columns():
     assert top.returncode == 0 and "contact-viz SESSION" in top.stdout and "--version" in top.stdout
     commands = top.stdout.split("Commands:")[1]
     assert not any(line.rstrip().endswith("...") for line in commands.splitlines())  # whole first lines
-    assert "Yang et al. 2024) into a session." in " ".join(commands.split())
+    assert "Yang et al. 2024, ROS bag / MCAP) into a session." in " ".join(commands.split())
     for command in ("extract", "view", "fit", "evaluate", "synth"):
         text = subprocess.run([sys.executable, "-m", "contact_viz.cli", command, "--help"], capture_output=True,
                               text=True, env=env, timeout=60).stdout

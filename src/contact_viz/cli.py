@@ -439,6 +439,8 @@ def view(
                            "(1 = all).")] = 2,
     grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
+    hand_eye: Annotated[Optional[Path], typer.Option(help="4x4 camera_T_base (text or .npy, m): draw the "
+                        "kinematics.csv tool tip and its distance to the mask's tip.")] = None,
     object_id: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
@@ -470,6 +472,13 @@ def view(
                       "these parameters")
             params = model.patch_params
         session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+        if hand_eye is not None:
+            from contact_viz.io.kinematics import read_hand_eye
+
+            camera_T_base = tuple(tuple(float(v) for v in row) for row in read_hand_eye(hand_eye))
+            if session.kinematics is None:
+                raise SessionError(session.root / "kinematics.csv", "missing: --hand-eye needs the robot's pose "
+                                   "(import a bag with a pose topic)")
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
@@ -503,11 +512,12 @@ def view(
             with_right=right, right_step=right_step, depth_step=depth_step, points=points,
             cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
                               voxel_m=voxel_mm / 1000),
-            patch_params=params,
+            patch_params=params, hand_eye=camera_T_base if hand_eye is not None else None,
         )
         opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
                                 web_port=web_port, blueprint=default_blueprint(
-                                    with_right=right and session.has_right, with_model=model is not None))
+                                    with_right=right and session.has_right, with_model=model is not None,
+                                    with_kinematics=hand_eye is not None))
     except (ValueError, IndexError) as exc:
         _fail(str(exc))
     if opened.web_viewer_url:
@@ -569,28 +579,125 @@ def depth(
 
 @app.command("import")
 def import_(
-    kind: Annotated[str, typer.Argument(help="Source layout: dvrk or yang2024.")],
-    src: Annotated[Path, typer.Argument(help="The recorder's folder (never modified).")],
-    out_session: Annotated[Path, typer.Argument(help="New session directory to create (new or empty).")],
-    force_topic: Annotated[Optional[str], typer.Option(help="dvrk: force topic (e.g. /force_sensor/measured_cf) "
-                           "when several topic CSVs have force columns.")] = None,
+    kind: Annotated[str, typer.Argument(help="Source layout: dvrk, yang2024 or bag.")],
+    src: Annotated[Path, typer.Argument(help="The recorder's folder, or for bag a .bag file, ROS 2 bag folder or "
+                                        ".mcap file (never modified).")],
+    out_session: Annotated[Optional[Path], typer.Argument(help="New session directory to create (new or "
+                                                          "empty).")] = None,
+    force_topic: Annotated[Optional[str], typer.Option("--force-topic", "--force", help="dvrk/bag: force topic "
+                           "(e.g. /force_sensor/measured_cf); bag: 'none' for no force.")] = None,
     video: Annotated[Optional[str], typer.Option(help="dvrk: video name when frames of several videos are "
                      "present.")] = None,
     calibration: Annotated[Optional[list[Path]], typer.Option(help="Calibration file to put in the session "
                            "(K.txt, left.yaml + right.yaml, stereo.yaml ...); repeat for several.")] = None,
     copy: Annotated[bool, typer.Option(help="Copy the images instead of linking them.")] = False,
+    list_topics: Annotated[bool, typer.Option("--list", help="bag: print the topics (type, count, rate, default "
+                           "role) and stop.")] = False,
+    left: Annotated[Optional[str], typer.Option(help="bag: left image topic.")] = None,
+    right: Annotated[Optional[str], typer.Option(help="bag: right image topic ('none': no right images).")] = None,
+    left_info: Annotated[Optional[str], typer.Option(help="bag: left CameraInfo topic.")] = None,
+    right_info: Annotated[Optional[str], typer.Option(help="bag: right CameraInfo topic.")] = None,
+    pose: Annotated[Optional[str], typer.Option(help="bag: tool pose topic (PoseStamped/TransformStamped, e.g. "
+                    "/PSM1/measured_cp) for kinematics.csv; 'none' to skip.")] = None,
+    pair_tolerance_ms: Annotated[Optional[float], typer.Option(help="bag: largest left/right stamp difference of "
+                                 "a stereo pair, ms (default: a quarter of the median left frame period).")] = None,
+    labels: Annotated[Optional[Path], typer.Option(help="yang2024: Yang et al.'s "
+                      "MTurk_Labels_with_keypoints.csv (GT labels, crowd labels, tool-tip keypoints).")] = None,
+    dataset: Annotated[Optional[str], typer.Option(help="yang2024: the recording's name in --labels "
+                       "(default: the name of SRC's folder).")] = None,
 ) -> None:
-    """Convert a recorder's output (dVRK data_collection, Yang et al. 2024) into a session."""
+    """Convert a recorder's output (dVRK data_collection, Yang et al. 2024, ROS bag / MCAP) into a session."""
     from contact_viz.errors import SessionError
     from contact_viz.io.importers import run_import_command
 
+    if list_topics:
+        if kind != "bag":
+            _fail("--list only applies to bag imports")
+        from contact_viz.io.importers.bag import list_lines
+
+        try:
+            lines = list_lines(src)
+        except SessionError as exc:
+            _fail(str(exc))
+        for line in lines:
+            typer.echo(line)
+        return
+    if out_session is None:
+        _fail("OUT_SESSION: expected the new session directory (or --list for a bag)")
+    topics = {"left": left, "right": right, "left_info": left_info, "right_info": right_info, "pose": pose}
+    from contextlib import nullcontext
+
     try:
-        lines = run_import_command(kind, src, out_session, force_topic=force_topic, video=video,
-                                   calibration=calibration or (), copy=copy)
+        with _progress() if kind == "bag" else nullcontext() as progress:  # a bag streams: show messages read
+            task = progress.add_task(f"import {src.name} (messages)", total=None) if progress is not None else None
+            lines = run_import_command(
+                kind, src, out_session, force_topic=force_topic, video=video, calibration=calibration or (),
+                copy=copy, labels=labels, dataset=dataset, bag_topics=topics,
+                pair_tolerance_s=None if pair_tolerance_ms is None else pair_tolerance_ms / 1000.0,
+                progress=None if progress is None else
+                lambda done, total: progress.update(task, completed=done, total=total))
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     for line in lines:
         typer.echo(line)
+
+
+@app.command()
+def batch(
+    sessions: Annotated[Path, typer.Argument(metavar="SESSIONS", help="A folder of session folders, one "
+                        "session folder, or a text file listing session folders (one per line).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Results folder: one folder per session, "
+                      "model.json, metrics.json, summary.json.")],
+    steps: Annotated[str, typer.Option(help="Comma-separated steps: depth, extract, check, view, fit, "
+                     "evaluate.")] = "depth,extract,check",
+    ray: Annotated[bool, typer.Option("--ray", help="Run the tasks on a local Ray started on the fly "
+                   "(pip install 'contact-viz[ray]').")] = False,
+    ray_address: Annotated[Optional[str], typer.Option(help="Run the tasks on an existing Ray cluster, e.g. "
+                           "auto or ray://HOST:10001 (sessions must be at the same path on every node).")] = None,
+    processes: Annotated[Optional[int], typer.Option(min=1, help="Local engine: processes [default: the number "
+                         "of cores, at most 8].")] = None,
+    chunk_frames: Annotated[int, typer.Option(min=1, help="Frames per depth/extract task.")] = 256,
+    model_path: Annotated[Optional[Path], typer.Option("--model", help="model.json for view and evaluate "
+                          "(evaluate without fit needs it).")] = None,
+    object_id: ObjectId = None,
+    contact_force: ContactForce = 2.0,
+    params_file: ParamsFile = None,
+    cache_dir: CacheDir = None,
+) -> None:
+    """Run steps over every session of a dataset, on this machine's cores or on Ray."""
+    from contact_viz.console import check_output_dir
+    from contact_viz.errors import SessionError
+    from contact_viz.pipeline.batch import BatchOptions, find_sessions, run_batch, summary_lines
+    from contact_viz.pipeline.engines import LocalEngine, RayEngine
+
+    params, label_params = _resolve_params(params_file, contact_force)
+    check_output_dir(output, "-o/--output")
+    try:
+        options = BatchOptions(steps=tuple(s.strip() for s in steps.split(",") if s.strip()), params=params,
+                               label_params=label_params, object_id=object_id,
+                               cache_dir=None if cache_dir is None else str(cache_dir),
+                               chunk_frames=chunk_frames,
+                               model_path=None if model_path is None else str(model_path.resolve()))
+        if model_path is not None and not model_path.is_file():
+            raise ValueError(f"--model {model_path}: expected a model.json file")
+        find_sessions(sessions)  # a wrong SESSIONS argument fails here, before any engine starts
+        engine = RayEngine(address=ray_address) if (ray or ray_address) else LocalEngine(processes)
+    except (SessionError, ValueError, RuntimeError) as exc:
+        _fail(str(exc))
+    try:
+        with _progress() as progress:
+            task = progress.add_task("batch", total=None)
+            summary = run_batch(sessions, output, options, engine, progress=lambda done, total, step: progress.update(
+                task, completed=done, total=total, description=f"batch: {step}"))
+    except (SessionError, ValueError) as exc:
+        _fail(str(exc))
+    finally:
+        engine.close()
+    for line in summary_lines(summary):
+        typer.echo(line)
+    typer.echo(f"{output / 'summary.json'}: the dataset summary")
+    if summary.failed or any(v.startswith("failed") for v in summary.dataset.values()):
+        raise typer.Exit(code=1)
 
 
 def _commands() -> list[str]:

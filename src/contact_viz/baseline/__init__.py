@@ -8,8 +8,9 @@ last layer replaced.) ``image_size`` is set to the crop size so the "same" paddi
 convolutions is computed for the real input size.
 
 Input: a ``crop_px`` (234) square RGB crop centred on the tool tip estimated from the tool mask
-(``contact_viz.geometry.tooltip``: the mask pixel farthest from where the tool enters the image). Frames
-whose mask gives no tip are cropped at the session's last known tip, or the image centre before
+(``contact_viz.geometry.tooltip``: the mask pixel farthest from where the tool enters the image), or
+on the session's ``tool_tips.csv`` keypoint where it has one (Yang et al.'s labelled keypoints,
+``contact-viz import yang2024 --labels``). Frames whose mask gives no tip are cropped at the session's last known tip, or the image centre before
 any tip was found (causal: only earlier frames are used). Frames whose left image cannot be read
 reuse the previous readable frame's crop (zeros before the first one) and are never trained on.
 Pixels are scaled to [0, 1] and normalised with the ImageNet mean and standard deviation.
@@ -97,7 +98,7 @@ _PLATT_TOL = 1e-10  # scikit-learn's lbfgs stopping tolerance of the Platt fit (
 _PLATT_MAX_ITER = 1000  # lbfgs iterations of the Platt fit, count
 
 # center_source codes of SessionCrops
-TIP_FOUND, LAST_TIP, IMAGE_CENTER = 0, 1, 2
+TIP_FOUND, LAST_TIP, IMAGE_CENTER, TIP_FILE = 0, 1, 2, 3
 
 
 class BaselineWarning(UserWarning):
@@ -157,7 +158,7 @@ class SessionCrops:
     crops: np.ndarray  # (T, S, S, 3) uint8 RGB crops (in memory or a read-only memory map)
     labels: np.ndarray  # (T,) int8 1 = contact, 0 = no contact, -1 = unknown
     center_xy: np.ndarray  # (T, 2) float64 crop centre (x = column, y = row) in the left image, px
-    center_source: np.ndarray  # (T,) uint8 TIP_FOUND (0) / LAST_TIP (1) / IMAGE_CENTER (2)
+    center_source: np.ndarray  # (T,) uint8 TIP_FOUND (0) / LAST_TIP (1) / IMAGE_CENTER (2) / TIP_FILE (3)
     readable: np.ndarray  # (T,) bool, False where the left image could not be read (never trained on)
 
     def __post_init__(self) -> None:
@@ -233,6 +234,7 @@ def extract_crops(
     center_source = np.empty(n_frames, dtype=np.uint8)
     readable = np.ones(n_frames, dtype=bool)
     last_tip: tuple[float, float] | None = None
+    file_tips = getattr(session, "tool_tips_xy", None)  # (T, 2) px from tool_tips.csv, NaN where absent
     image_center = ((width - 1) / 2.0, (height - 1) / 2.0)
     try:
         for frame in session.iter_frames(layers=("mask", "left")):
@@ -242,8 +244,11 @@ def extract_crops(
             if left_rgb is None:  # a BadFrame: the mask or the image is unreadable; try each alone
                 tool_mask = getattr(session.load_frame(i, ("mask",)), "tool_mask", None)
                 left_rgb = getattr(session.load_frame(i, ("left",)), "left_rgb", None)
-            tip = tool_tip_xy(tool_mask, tip_params) if tool_mask is not None else None
-            if tip is not None:
+            file_tip = None if file_tips is None or not np.isfinite(file_tips[i]).all() else file_tips[i]
+            tip = tool_tip_xy(tool_mask, tip_params) if tool_mask is not None and file_tip is None else None
+            if file_tip is not None:  # the session's tool_tips.csv (e.g. Yang et al.'s keypoints) wins
+                last_tip, center_source[i] = (float(file_tip[0]), float(file_tip[1])), TIP_FILE
+            elif tip is not None:
                 last_tip, center_source[i] = tip, TIP_FOUND
             else:
                 center_source[i] = LAST_TIP if last_tip is not None else IMAGE_CENTER

@@ -15,6 +15,8 @@ The session directory format (the contract)::
       force.csv           optional: `frame` (stem) or `timestamp` (s) column, plus fx, fy, fz (N)
       frames.csv          optional: frame,timestamp (s); needed when force.csv is indexed by timestamp
       labels.csv          optional manual labels: frame,contact (0/1); they replace the force labels
+      kinematics.csv      optional robot tool pose: timestamp,x_m,y_m,z_m,qx,qy,qz,qw,frame_id (io/kinematics.py)
+      tool_tips.csv       optional tool-tip keypoints: frame,x_px,y_px (the RGB baseline's crop centres)
 
 Depth comes from one source per session, chosen in this order and logged (``Session.depth_note``):
 ``depth/``; else ``disparity/`` (depth = fx * baseline / (disparity + offset)); else OpenCV
@@ -64,6 +66,7 @@ from contact_viz.io.session_files import (
 )
 from contact_viz.geometry.stereo import DEPTH_METHODS, SGBMParams, disparity_to_depth
 from contact_viz.io.depth_cache import DisparityCache
+from contact_viz.io.kinematics import KINEMATICS_FILE, TOOL_TIPS_FILE, Kinematics, read_kinematics, read_tool_tips
 
 __all__ = [
     "LAYERS",
@@ -143,6 +146,8 @@ class Session:
         depth_source: "depth", "disparity" or "sgbm" (see DEPTH_SOURCES). depth_note: one line
         saying where depth comes from. depth_config: what the depth depends on, for cache keys.
         depth_cache_dir: where SGBM disparities are cached (None for other sources).
+        kinematics: kinematics.csv's pose samples (io.kinematics.Kinematics) or None.
+        tool_tips_xy: (n, 2) float64 px from tool_tips.csv, NaN where it has no row; None without it.
     """
 
     def __init__(
@@ -170,6 +175,8 @@ class Session:
         depth_note: str = "depth from depth/",
         stereo: StereoCalibration | None = None,
         sgbm_cache: DisparityCache | None = None,
+        kinematics: Kinematics | None = None,
+        tool_tips_xy: np.ndarray | None = None,
     ) -> None:
         if depth_source not in DEPTH_SOURCES:
             raise ValueError(f"depth_source must be one of {DEPTH_SOURCES}, got {depth_source!r}")
@@ -201,6 +208,8 @@ class Session:
         self._sgbm = sgbm_cache if depth_source == "sgbm" else None
         self.depth_cache_dir = self._sgbm.directory if self._sgbm is not None else None
         self.depth_config = {"source": depth_source}
+        self.kinematics = kinematics  # kinematics.csv (robot tool pose samples) or None
+        self.tool_tips_xy = tool_tips_xy  # (n, 2) px from tool_tips.csv, NaN where absent; None without the file
         if self._sgbm is not None:
             self.depth_config["sgbm"] = asdict(self._sgbm.params)
 
@@ -512,6 +521,9 @@ def open_session(
         labels[manual_index] = manual_contact
         label_source[manual_index] = "manual"
 
+    kinematics = read_kinematics(root / KINEMATICS_FILE) if (root / KINEMATICS_FILE).is_file() else None
+    tool_tips_xy = read_tool_tips(root / TOOL_TIPS_FILE, stems) if (root / TOOL_TIPS_FILE).is_file() else None
+
     session = Session(
         root=root,
         name=meta.get("name") or root.name,
@@ -535,6 +547,8 @@ def open_session(
         depth_note=note,
         stereo=stereo,
         sgbm_cache=sgbm_cache,
+        kinematics=kinematics,
+        tool_tips_xy=tool_tips_xy,
     )
     session.check_format()
     return session

@@ -42,6 +42,8 @@ from contact_viz.geometry.pointcloud import CloudParams, decimated_intrinsics, d
 from contact_viz.io.prefetch import prefetched
 from contact_viz.io.session import Session, read_rgb
 from contact_viz.viz.video import BackgroundEncoder, VideoEncoder, VideoParams, even_size, rgb_to_i420
+from contact_viz.geometry.kinematics import frame_samples, kinematic_tip
+from contact_viz.geometry.tooltip import tool_tip_xy
 
 __all__ = [
     "DebuggerOptions",
@@ -91,9 +93,13 @@ class DebuggerOptions:
     flush_every: int = checked(15, ge=1)
     prefetch: int = checked(4, ge=1)  # images read ahead of the frame being logged, frames
     image_workers: int = checked(2, ge=1)  # threads reading (decoding, converting) the images, one frame each
+    hand_eye: tuple[tuple[float, ...], ...] | None = None  # 4x4 camera_T_base (m; io/kinematics.py); None = no tip
+    kinematics_max_gap_s: float = checked(0.05, ge=0)  # a pose farther than this from a frame is not drawn there, s
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.hand_eye is not None and np.asarray(self.hand_eye, dtype=np.float64).shape != (4, 4):
+            raise ValueError(f"DebuggerOptions.hand_eye must be a 4x4 transform, got {self.hand_eye!r}")
 
 
 @dataclass(frozen=True)
@@ -285,6 +291,28 @@ class _VideoStreams:
 # --------------------------------------------------------------------------------------------
 
 
+def _pose_samples(session: Session, options: DebuggerOptions) -> np.ndarray | None:
+    """Index of the kinematics.csv row drawn at each frame (-1: none within the gap); None without a hand-eye."""
+    if options.hand_eye is None:
+        return None
+    if session.kinematics is None:
+        raise ValueError(f"--hand-eye: the session {session.root} has no kinematics.csv to place with it "
+                         "(import a bag with a pose topic)")
+    return frame_samples(session.kinematics.timestamps_s, session.timestamps_s, options.kinematics_max_gap_s)
+
+
+def _kinematic_tip(session: Session, frame, pose_of: np.ndarray, options: DebuggerOptions, K: np.ndarray):
+    """The frame's KinematicTip (checked against the mask tip when the mask was read), or None without a pose."""
+    row = pose_of[frame.index]
+    if row < 0:
+        return None
+    kin = session.kinematics
+    tool_mask = getattr(frame, "tool_mask", None)
+    mask_tip = tool_tip_xy(tool_mask) if tool_mask is not None else None
+    return kinematic_tip(np.asarray(options.hand_eye), kin.position_m[row], kin.quaternion_xyzw[row], K,
+                         mask_tip, getattr(frame, "depth_m", None))
+
+
 def run_debugger(
     session: Session,
     rec: rerun_log.RecordingStream,
@@ -322,6 +350,7 @@ def run_debugger(
     if model is None:
         rerun_log.log_model_hint(rec, indices[0], float(session.timestamps_s[indices[0]]))
     tracker = DiagnosticsTracker(options.diagnostics)
+    pose_of = _pose_samples(session, options)  # (n,) pose row per frame (-1 none), or None without --hand-eye
     stream = None if model is None else StreamingFilter(model.ensemble)
     reader = _ImageReader(session, options, with_right)
 
@@ -382,6 +411,8 @@ def run_debugger(
                 rerun_log.log_frame(rec, result, view)
                 if videos is not None:
                     videos.feed(frame.index, shown)
+            if pose_of is not None:
+                rerun_log.log_kinematic_tip(rec, _kinematic_tip(session, frame, pose_of, options, K))
             done += 1
             if done % options.flush_every == 0:
                 rec.flush()

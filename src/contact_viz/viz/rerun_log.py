@@ -59,6 +59,7 @@ from contact_viz.params import MM_PER_M
 from contact_viz.viz.style import (
     DEPTH_COLORMAP,
     DIAGNOSTIC_STYLES,
+    KINEMATIC_STYLES,
     LAYER_OVERLAY_OPACITY,
     LAYER_STYLES,
     PATCH_COLOUR_NAME,
@@ -151,6 +152,11 @@ ENTITY_SERIES_PREDICTED = "series/contact/predicted"
 ENTITY_SERIES_DIAGNOSTICS = "series/diagnostics"
 ENTITY_SERIES_INVALID_DEPTH = "series/diagnostics/invalid_depth_fraction"
 ENTITY_LOG = "log"
+ENTITY_KINEMATIC_TIP = "world/kinematics/tip"  # Points3D: the robot's tool tip (hand-eye x kinematics.csv)
+ENTITY_KINEMATIC_AXES = "world/kinematics/axes"  # Arrows3D: the tool frame's x, y, z axes at the tip
+ENTITY_LEFT_KINEMATIC_TIP = "world/camera/left/kinematic_tip"  # Points2D: its projection on the left image
+ENTITY_LEFT_MASK_TIP = "world/camera/left/mask_tip"  # Points2D: the tool tip estimated from the mask
+ENTITY_SERIES_TIP = "series/tip"  # Scalars error_px, error_mm: kinematic tip vs mask tip
 ENTITY_CONFIG = "config"  # TextDocument (static): the resolved configuration of the run, JSON
 
 TIMELINE_FRAME = "frame"  # sequence timeline: frame index in the session
@@ -317,7 +323,8 @@ def layer_legend() -> str:
     return " · ".join(f"{s.colour_name}: {s.name}" for s in LAYER_STYLES if s.rgba[3] > 0)
 
 
-def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rrb.Blueprint:
+def default_blueprint(*, with_right: bool = True, with_model: bool = True,
+                      with_kinematics: bool = False) -> rrb.Blueprint:
     """The layout sent with every recording: images over the 3D scene on the left, stacked time series on the right.
 
     Left column, top: the left image with the layer overlay and the patch box (large; its title
@@ -371,6 +378,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True) -> rr
                                axis_y=rrb.ScalarAxis(range=(-0.05, diagnostics_top)),
                                plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftBottom)),
             rrb.TextLogView(name="log", origin=ENTITY_LOG),
+            *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=ENTITY_SERIES_TIP,
+                                  axis_x=linked)] if with_kinematics else []),
             active_tab=0,
         ),
     ]
@@ -543,6 +552,32 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
     _log_series(rec, ENTITY_SERIES_INVALID_DEPTH, patch.invalid_depth_fraction)
     _log_contact(rec, view.posterior, view.predicted)
     _log_diagnostics(rec, view.diagnostics, view.notes)
+
+
+KINEMATIC_AXIS_M = 0.005  # drawn length of the tool frame's axes, m
+
+
+def log_kinematic_tip(rec: rr.RecordingStream, tip) -> None:
+    """Log a frame's :class:`contact_viz.geometry.kinematics.KinematicTip` (None: no pose near the frame)."""
+    entities = (ENTITY_KINEMATIC_TIP, ENTITY_KINEMATIC_AXES, ENTITY_LEFT_KINEMATIC_TIP, ENTITY_LEFT_MASK_TIP)
+    if tip is None:
+        for entity in entities:
+            rec.log(entity, rr.Clear(recursive=False))
+        error_px = error_mm = math.nan
+    else:
+        rec.log(ENTITY_KINEMATIC_TIP, rr.Points3D([tip.tip_m], colors=[KINEMATIC_STYLES["tip"]], radii=[0.0008],
+                                                  labels=["kinematic tip"]))
+        rec.log(ENTITY_KINEMATIC_AXES, rr.Arrows3D(origins=[tip.tip_m] * 3, vectors=tip.axes.T * KINEMATIC_AXIS_M,
+                                                   colors=list(KINEMATIC_STYLES["axes"])))
+        for entity, xy, key in ((ENTITY_LEFT_KINEMATIC_TIP, tip.tip_xy_px, "tip"),
+                                (ENTITY_LEFT_MASK_TIP, tip.mask_tip_xy_px, "mask")):
+            if xy is not None and np.isfinite(xy).all():
+                rec.log(entity, rr.Points2D([xy], colors=[KINEMATIC_STYLES[key]], radii=[-4.0]))
+            else:
+                rec.log(entity, rr.Clear(recursive=False))
+        error_px, error_mm = tip.error_px, tip.error_mm
+    _log_series(rec, f"{ENTITY_SERIES_TIP}/error_px", error_px)
+    _log_series(rec, f"{ENTITY_SERIES_TIP}/error_mm", error_mm)
 
 
 def log_bad_frame(

@@ -97,6 +97,14 @@ PATCH_STYLES: dict[str, RGBA] = {
     "gap": WHITE,  # arrow from the tool depth to the tissue along the patch centre's ray (3D)
 }
 
+# The robot's tool tip (view --hand-eye): magenta kinematic tip, cyan mask tip (both unlike any layer
+# colour), and the tool frame's axes in the usual x/y/z = red/green/blue.
+KINEMATIC_STYLES: dict[str, tuple] = {
+    "tip": (255, 0, 255, 255),  # the kinematic tool tip (3D point, and its projection on the left image)
+    "mask": (0, 255, 255, 255),  # the tip estimated from the mask (left image)
+    "axes": ((255, 0, 0, 255), (0, 200, 0, 255), (0, 80, 255, 255)),  # tool frame x, y, z (3D arrows)
+}
+
 
 @dataclass(frozen=True)
 class SeriesStyle:

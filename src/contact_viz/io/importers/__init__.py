@@ -25,6 +25,15 @@ Kinds:
     frames, ``right_img/img_<n>.jpg`` right frames and a header-less comma-separated
     ``labels_30hz.txt`` with one row per left frame: column 1 = time (s), columns 2-4 = force
     Fx, Fy, Fz (N). Stems are n zero-padded to 6 digits; force.csv is indexed by frame.
+    With ``labels`` (their ``labels/MTurk_Labels_with_keypoints.csv``: ``GT, MTurk_Label, dataset,
+    image, x, y``, every 45th frame of each recording) the recording's rows become labels.csv (GT),
+    crowd_labels.csv (the crowd workers' label) and tool_tips.csv (the keypoint, px).
+``bag``
+    A ROS 1 ``.bag`` file, a ROS 2 bag folder (sqlite3 ``.db3`` or ``.mcap``) or a bare ``.mcap``
+    file, read with ``rosbags`` (see ``bag.py``): left/right ``sensor_msgs/Image`` or
+    ``CompressedImage`` paired by header stamp, CameraInfo -> left.yaml + right.yaml,
+    ``WrenchStamped`` -> force.csv (own rate), ``PoseStamped`` / ``TransformStamped`` ->
+    kinematics.csv (``contact_viz.io.kinematics``).
 """
 
 from __future__ import annotations
@@ -32,17 +41,19 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from contact_viz.io.importers.bag import import_bag
 from contact_viz.io.importers.common import ImportResult
 from contact_viz.io.importers.dvrk import import_dvrk
 from contact_viz.io.importers.yang2024 import import_yang2024
 
-__all__ = ["IMPORTERS", "ImportResult", "import_dvrk", "import_yang2024"]
+__all__ = ["IMPORTERS", "ImportResult", "import_bag", "import_dvrk", "import_yang2024"]
 
 # --------------------------------------------------------------------------------------------
 # Kinds
 # --------------------------------------------------------------------------------------------
 
-IMPORTERS: dict[str, Callable[..., ImportResult]] = {"dvrk": import_dvrk, "yang2024": import_yang2024}
+IMPORTERS: dict[str, Callable[..., ImportResult]] = {"dvrk": import_dvrk, "yang2024": import_yang2024,
+                                                     "bag": import_bag}
 
 
 def run_import_command(
@@ -54,6 +65,11 @@ def run_import_command(
     video: str | None = None,
     calibration: Sequence[str | Path] = (),
     copy: bool = False,
+    labels: str | Path | None = None,
+    dataset: str | None = None,
+    bag_topics: dict[str, str | None] | None = None,
+    pair_tolerance_s: float | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> list[str]:
     """`contact-viz import KIND SRC OUT_SESSION`: returns the lines to print.
 
@@ -61,11 +77,24 @@ def run_import_command(
     """
     if kind not in IMPORTERS:
         raise ValueError(f"KIND must be one of {', '.join(IMPORTERS)}, got {kind!r}")
-    if kind == "yang2024":
+    topics = {k: v for k, v in (bag_topics or {}).items() if v is not None}
+    if kind != "bag" and (topics or pair_tolerance_s is not None):
+        given = [f"--{k.replace('_', '-')}" for k in topics] + (["--pair-tolerance-ms"] if pair_tolerance_s else [])
+        raise ValueError(f"{', '.join(given)} only apply to bag imports")
+    if kind != "yang2024" and (labels is not None or dataset is not None):
+        raise ValueError("--labels and --dataset only apply to yang2024 imports")
+    if kind == "bag":
+        if video is not None:
+            raise ValueError("--video only applies to dvrk imports")
+        if force_topic is not None:
+            topics["force"] = force_topic
+        result = import_bag(src, out, **topics, pair_tolerance_s=pair_tolerance_s, calibration=calibration,
+                            progress=progress)
+    elif kind == "yang2024":
         unused = [name for name, value in (("--force-topic", force_topic), ("--video", video)) if value is not None]
         if unused:
             raise ValueError(f"{', '.join(unused)} only apply to dvrk imports")
-        result = import_yang2024(src, out, calibration=calibration, copy=copy)
+        result = import_yang2024(src, out, calibration=calibration, copy=copy, labels=labels, dataset=dataset)
     else:
         result = import_dvrk(src, out, force_topic=force_topic, video=video, calibration=calibration, copy=copy)
     return result.lines()

@@ -55,7 +55,8 @@ class ImportResult:
 
     def lines(self) -> list[str]:
         """Human-readable report, one line each."""
-        how = ", ".join(f"{n} {way}ed" if way != "copy" else f"{n} copied" for way, n in self.placed.items() if n)
+        verbs = {"hardlink": "hardlinked", "symlink": "symlinked", "copy": "copied"}
+        how = ", ".join(f"{n} {verbs.get(way, way)}" for way, n in self.placed.items() if n)
         out = [f"{self.out}: {self.frames} frames imported from {self.source} ({self.kind}; images {how or 'none'})"]
         out.append(f"force.csv: {self.force_samples} samples" if self.force_samples else "no force.csv written")
         out.extend(f"note: {note}" for note in self.notes)

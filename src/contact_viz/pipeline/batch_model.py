@@ -1,0 +1,89 @@
+"""The dataset steps of `contact-viz batch`: ``fit`` and ``evaluate`` over the sessions' features.
+
+``fit`` writes ``OUT/model.json``: the leave-one-session-out HMM ensemble of `contact-viz fit` over
+every session with labels. ``evaluate`` writes ``OUT/metrics.json`` and ``OUT/per_frame.csv``:
+after ``fit`` each session is scored by the ensemble member fitted without it (a cross-validated
+Table 1 of the dataset; the threshold is the ensemble's, chosen on the pooled out-of-fold
+posteriors); with ``--model`` every session is scored by that model.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from contact_viz.io.atomic import atomic_write
+from contact_viz.io.jsonfile import write_json
+from contact_viz.model.evaluation import PER_FRAME_COLUMNS, metrics_table, per_frame_rows, score_session
+from contact_viz.params import to_dict
+
+__all__ = ["run_dataset_steps"]
+
+
+def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: Callable[[str], None]) -> None:
+    """Run ``fit`` and/or ``evaluate`` (as in ``options.steps``) on the features under ``out``."""
+    from contact_viz.model.hmm import LosoEnsemble
+    from contact_viz.model.model_file import ContactModel, check_params, load_model, save_model
+    from contact_viz.pipeline.extract import feature_arrays, read_features, read_features_config
+
+    features = {}
+    for name in names:
+        path = out / name / "features.csv"
+        if not path.exists():
+            continue
+        file_params, _ = read_features_config(path)
+        try:
+            check_params(options.params, file_params, str(path))
+        except ValueError:  # features of other parameters (an older run): not this batch's
+            continue
+        rows = read_features(path)
+        signal, labels = feature_arrays(rows)
+        features[name] = ([r["frame"] for r in rows], signal, labels)
+    model = None
+    if "fit" in options.steps:
+        labelled = [n for n in names if n in features and (features[n][2] >= 0).any()]
+        try:
+            if len(labelled) < 2:
+                raise ValueError(f"fit: expected at least 2 sessions with labels and features, found {len(labelled)}"
+                                 " (run the extract step too)")
+            ensemble = LosoEnsemble().fit([features[n][1] for n in labelled], [features[n][2] for n in labelled],
+                                          session_names=labelled)
+            model = ContactModel(ensemble=ensemble, patch_params=options.params, label_params=options.label_params,
+                                 training_sessions=tuple({"name": n, "path": s.path, "frames": s.frames}
+                                                         for n in labelled for s in summary.sessions if s.name == n))
+            save_model(model, out / "model.json")
+            summary.dataset["fit"] = f"done: {len(labelled)} LOSO models, threshold {model.threshold:.4f}"
+        except ValueError as exc:
+            summary.dataset["fit"] = f"failed: {exc}"
+        tick("fit")
+    if "evaluate" in options.steps:
+        try:
+            if model is not None:
+                members = dict(zip(model.ensemble.session_names_, model.ensemble.models_))
+                threshold = model.threshold
+                scored = [n for n in names if n in members]
+                scores = [score_session(members[n].predict_proba, threshold, n, *features[n]) for n in scored]
+                how = "each session by the LOSO model fitted without it"
+            elif options.model_path is not None:
+                loaded = load_model(options.model_path)
+                check_params(loaded.patch_params, options.params, f"--model {options.model_path}")
+                threshold = loaded.threshold
+                scores = [score_session(loaded.predict_proba, threshold, n, *features[n]) for n in names if n in features]
+                how = f"every session by {options.model_path}"
+            else:
+                raise ValueError("evaluate: no model (fit failed or was not run, and no --model)")
+            if not scores:
+                raise ValueError("evaluate: no session has features (run the extract step too)")
+            table = metrics_table(scores, threshold)
+            with atomic_write(out / "per_frame.csv", newline="") as handle:
+                writer = csv.DictWriter(handle, fieldnames=PER_FRAME_COLUMNS)
+                writer.writeheader()
+                writer.writerows(per_frame_rows(scores))
+            write_json(out / "metrics.json", {"scored": how, "threshold": threshold,
+                                              "patch_params": to_dict(options.params), "metrics": table})
+            summary.metrics = table
+            summary.dataset["evaluate"] = f"done: {len(scores)} sessions, {how}"
+        except ValueError as exc:
+            summary.dataset["evaluate"] = f"failed: {exc}"
+        tick("evaluate")
