@@ -35,7 +35,10 @@ echo; echo "== 3. Held-out evaluation (Table 1 of the paper, on synthetic data)"
 run contact-viz evaluate "$OUT/model.json" "$OUT"/sessions/{cup,kidney,liver,glove}_test \
   --per-frame "$OUT/results/per_frame.csv" --json "$OUT/results/metrics.json" --markdown --cache-dir "$OUT/cache"
 
-echo; echo "== 4. The Rerun recording of the kidney test session"
+echo; echo "== 4. Diagnostics: mask, depth and force failures in the test sessions (none in clean synthetic data)"
+run contact-viz check "$OUT"/sessions/{cup,kidney,liver,glove}_test --json "$OUT/results/checks.json"
+
+echo; echo "== 5. The Rerun recording of the kidney test session"
 run contact-viz "$OUT/sessions/kidney_test" --model "$OUT/model.json" --save "$OUT/demo.rrd"
 echo
 echo "Open the recording with:  .venv/bin/rerun $OUT/demo.rrd"

@@ -165,13 +165,14 @@ def test_ray_gives_the_same_results_as_local(dataset, tmp_path):
 
     local = LocalEngine(2)
     try:
-        run_batch(dataset, tmp_path / "local", BatchOptions(steps=("extract", "fit", "evaluate"), chunk_frames=32), local)
+        run_batch(dataset, tmp_path / "local", BatchOptions(steps=("extract", "check", "fit", "evaluate"),
+                                                           chunk_frames=32), local)
     finally:
         local.close()
     engine = RayEngine(num_cpus=2)
     try:
         assert ray.is_initialized()
-        summary = run_batch(dataset, tmp_path / "ray", BatchOptions(steps=("extract", "fit", "evaluate"),
+        summary = run_batch(dataset, tmp_path / "ray", BatchOptions(steps=("extract", "check", "fit", "evaluate"),
                                                                    chunk_frames=32), engine)
         assert summary.engine.startswith("ray (local Ray: 1 node, 2 CPUs)")
     finally:
@@ -182,6 +183,26 @@ def test_ray_gives_the_same_results_as_local(dataset, tmp_path):
             (tmp_path / "local" / name / "features.csv").read_bytes()
     for name in ("model.json", "per_frame.csv"):
         assert (tmp_path / "ray" / name).read_bytes() == (tmp_path / "local" / name).read_bytes()
+    for name in ("cup_0", "cup_1", "cup_2"):  # the same check reports, but for the time they took
+        reports = [json.loads((tmp_path / engine / name / "check.json").read_text()) for engine in ("local", "ray")]
+        for report in reports:
+            report.pop("elapsed_s")
+        assert reports[0] == reports[1]
     local_metrics = json.loads((tmp_path / "local" / "metrics.json").read_text())
     ray_metrics = json.loads((tmp_path / "ray" / "metrics.json").read_text())
     assert ray_metrics == local_metrics
+
+
+def test_check_step_writes_the_check_report(dataset, tmp_path):
+    from contact_viz.pipeline.check import check_session
+
+    engine = LocalEngine(1)
+    summary = run_batch(dataset, tmp_path / "out", BatchOptions(steps=("check",)), engine)
+    assert [s.steps["check"] for s in summary.sessions] == ["done"] * 3
+    for outcome in summary.sessions:
+        written = json.loads((tmp_path / "out" / outcome.name / "check.json").read_text())
+        direct = check_session(dataset / outcome.name).to_dict()
+        written.pop("elapsed_s"), direct.pop("elapsed_s")
+        assert written == direct
+        fired = {code: c["frames"] for code, c in direct["checks"].items() if c["frames"]}
+        assert outcome.checks_fired == fired

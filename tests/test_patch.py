@@ -59,7 +59,10 @@ def literal_patch(depth, tool, p: PatchParams):
                 yield qy, qx
 
     band_pixels = [(int(y), int(x)) for y, x in zip(*np.nonzero(band))]  # row-major
-    d, z_tool = {}, {}
+    # The bleeding test: the tissue beyond = background within bleed_beyond_px of the band's outer edge.
+    outer = tool | (dist_out <= p.ring_px + band_w)  # the tool, its ring and its band
+    beyond = ~outer & (distance_transform_edt(~outer) <= p.bleed_beyond_px)
+    d, z_tool, bled = {}, {}, set()
     for y, x in band_pixels:
         if not valid[y, x]:
             continue
@@ -67,18 +70,25 @@ def literal_patch(depth, tool, p: PatchParams):
         if len(tool_depths) >= p.tau_tool:
             z_tool[(y, x)] = sum(tool_depths) / len(tool_depths)
             d[(y, x)] = float(depth[y, x]) - z_tool[(y, x)]
+            tissue = [float(depth[q]) for q in window(y, x, p.n1 // 2) if beyond[q] and valid[q]]
+            if p.reject_bleeding and tissue:
+                step = sum(tissue) / len(tissue) - z_tool[(y, x)]
+                if step >= p.bleed_step_m and d[(y, x)] < step / 2:  # nearer the tool's depth: bled
+                    del d[(y, x)]
+                    bled.add((y, x))
     s = {}
     for y, x in band_pixels:
         near = [abs(d[q]) for q in window(y, x, p.n2 // 2) if q in d]
         if len(near) >= p.tau_patch:
             s[(y, x)] = sum(near) / len(near)
-    out = {"interior": interior, "ring": ring, "band": band, "d": d, "s": s, "band_w": band_w, "shaft": shaft}
+    out = {"interior": interior, "ring": ring, "band": band, "d": d, "s": s, "band_w": band_w, "shaft": shaft,
+           "bled": bled}
     if not band_pixels:
         out["reason"] = REASON_NO_BAND
     elif not d:
-        out["reason"] = REASON_NO_TOOL_DEPTH
+        out["reason"] = "depth_bleeding" if bled else REASON_NO_TOOL_DEPTH
     elif not s:
-        out["reason"] = REASON_NO_CANDIDATE
+        out["reason"] = "depth_bleeding" if bled else REASON_NO_CANDIDATE
     else:
         best = min(s, key=lambda q: s[q])  # first minimum in row-major order
         in_window = [q for q in window(*best, p.n2 // 2) if q in d]
@@ -132,6 +142,7 @@ def assert_matches_literal(depth, tool, params):
                 assert s == pytest.approx(slow["s"][key], abs=1e-9)
         assert fast.n_band == len(fast.band_yx) == int(slow["band"].sum())
         assert fast.n_valid_distance == len(slow["d"])
+        assert fast.n_bleeding == len(slow["bled"])
         assert fast.n_candidates == len(slow["s"])
     if slow["reason"] is None:
         assert fast.distance_m == pytest.approx(slow["distance"], abs=1e-6)
@@ -380,7 +391,7 @@ def test_patch_on_its_depth_rows_equals_patch_on_the_frame(seed):
         math.isnan(whole.distance_m) and math.isnan(compute_patch(scrambled, tool, params).distance_m))
     band = compute_patch(depth[row0:row1], tool[row0:row1], params)
     assert band.reason == whole.reason
-    for name in ("shaft_width_px", "band_width_px", "tool_area_px", "n_band", "n_valid_distance", "n_candidates",
+    for name in ("shaft_width_px", "band_width_px", "tool_area_px", "n_band", "n_valid_distance", "n_candidates", "n_bleeding",
                  "invalid_depth_fraction", "distance_m", "score_m", "tool_depth_m", "signal"):
         a, b = getattr(band, name), getattr(whole, name)
         assert a == b or (math.isnan(a) and math.isnan(b)), name

@@ -441,3 +441,19 @@ def test_an_interrupted_run_leaves_no_partial_session(tmp_path):
         generate_session(old, SynthParams(frames=5, seed=9, **TINY), overwrite=True, progress=stop_after_two)
     assert sorted((p.relative_to(old), p.stat().st_size) for p in old.rglob("*")) == before
     assert [p.name for p in tmp_path.iterdir()] == ["old"]
+
+
+def test_true_depth_is_the_noiseless_depth_of_the_session(tmp_path):
+    """synth.true_depth re-renders the exact z-depth: without disparity noise, edge fattening and hole
+    blobs, the session's depth/ equals it wherever depth/ has a value (holes: occlusion, highlights)."""
+    params = SynthParams(phantom="cup", frames=40, seed=2, disparity_noise_px=0.0, edge_fattening_px=0.0,
+                         hole_blob_count=0.0, **TINY)
+    session = generate_session(tmp_path / "s", params)
+    truth = synth.true_depth(params, [0, 39])
+    for i in (0, 39):
+        depth = _load_depth(session, i)
+        assert truth[i].shape == depth.shape and truth[i].dtype == np.float32
+        seen = depth > 0
+        assert seen.mean() > 0.8
+        np.testing.assert_allclose(depth[seen], truth[i][seen], rtol=1e-5)
+        assert np.all(truth[i][_load_mask(session, i) > 0] > 0)  # the tool is there in the truth too

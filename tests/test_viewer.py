@@ -11,7 +11,6 @@ import textwrap
 import warnings
 from collections import defaultdict
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,12 +22,12 @@ from rerun.chunk import RrdReader  # noqa: E402
 from contact_viz.viz import rerun_log  # noqa: E402
 from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames  # noqa: E402
 from contact_viz.viz.rerun_log import open_recording  # noqa: E402
-from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, DiagnosticParams, DiagnosticsTracker  # noqa: E402
+from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, SESSION_DIAGNOSTIC_CODES  # noqa: E402
 from contact_viz.pipeline.extract import BadFrameWarning  # noqa: E402
 from contact_viz.model.hmm import LosoEnsemble  # noqa: E402
 from contact_viz.model.model_file import ContactModel  # noqa: E402
 from contact_viz.params import LabelParams, PatchParams  # noqa: E402
-from contact_viz.geometry.patch import LAYER_BAND, LAYER_INTERIOR, REASON_EMPTY_MASK, compute_patch  # noqa: E402
+from contact_viz.geometry.patch import LAYER_BAND, LAYER_INTERIOR, compute_patch  # noqa: E402
 from contact_viz.geometry.pointcloud import (  # noqa: E402
     CloudParams,
     backproject,
@@ -597,70 +596,15 @@ def test_patch_geometry_reproduces_the_patch_numbers(session_dir):
 
 
 # ------------------------------------------------------------------------------------------
-# Diagnostics (pure)
+# Styles
 # ------------------------------------------------------------------------------------------
-
-
-def fake_result(index, area, distance_m=0.01, invalid=0.1, reason=None, bad=False):
-    """A FrameResult look-alike: a mask with ``area`` tool pixels and a patch with these numbers."""
-    mask = np.zeros(10_000, bool)
-    mask[:area] = True
-    frame = SimpleNamespace(index=index, stem=f"{index:04d}", tool_mask=mask, reason="x.npy: broken")
-    patch = None if bad else SimpleNamespace(distance_m=distance_m, invalid_depth_fraction=invalid, reason=reason)
-    return SimpleNamespace(frame=frame, patch=patch)
-
-
-def fired(tracker, results):
-    return [[d.code for d in tracker.update(r)] for r in results]
-
-
-def test_each_diagnostic_fires_on_its_case_and_not_otherwise():
-    params = DiagnosticParams(min_tool_area_px=50, mask_area_jump=0.5, max_invalid_depth_fraction=0.4,
-                              distance_jump_m=0.005)
-    tracker = DiagnosticsTracker(params)
-    results = [
-        fake_result(0, 1000, 0.010),  # baseline
-        fake_result(1, 1400, 0.012),  # +29 % area, +2 mm: nothing
-        fake_result(2, 3000, 0.013),  # area 1400 -> 3000: 53 % change -> jump
-        fake_result(3, 3000, 0.020),  # +7 mm -> distance jump
-        fake_result(4, 3000, 0.021, invalid=0.45),  # invalid depth
-        fake_result(5, 3000, math.nan, reason="too_few_valid_distances"),  # no patch
-        fake_result(6, 3000, 0.030),  # previous distance NaN: no jump
-        fake_result(7, 10, math.nan, reason="too_few_tool_pixels"),  # no tool (10 < 50 px) + area jump + no patch
-        fake_result(8, 0, math.nan, reason=REASON_EMPTY_MASK, invalid=math.nan),  # no tool only
-        fake_result(9, 3000, 0.031, bad=True),  # bad frame
-        fake_result(10, 3000, 0.032),  # compared with frame 8 (bad frames are skipped): area 0 -> no jump check
-        fake_result(11, 3000, 0.0325),  # nothing
-    ]
-    assert fired(tracker, results) == [
-        [], [], ["mask_area_jump"], ["distance_jump"], ["invalid_depth"], ["no_patch"], [],
-        ["no_tool", "mask_area_jump", "no_patch"], ["no_tool"], ["bad_frame"], [], [],
-    ]
-    assert tracker.frames == 12
-    assert tracker.counts == {"bad_frame": 1, "no_tool": 2, "mask_area_jump": 2, "invalid_depth": 1,
-                              "no_patch": 2, "distance_jump": 1}
-    # thresholds are strict: exactly at the threshold does not fire
-    tracker = DiagnosticsTracker(DiagnosticParams(mask_area_jump=0.5, distance_jump_m=0.005,
-                                                  max_invalid_depth_fraction=0.5))
-    assert fired(tracker, [fake_result(0, 1000, 0.010), fake_result(1, 2000, 0.015, invalid=0.5)]) == [[], []]
-    messages = DiagnosticsTracker(params).update(fake_result(0, 3, 0.01))
-    assert "3 px" in messages[0].message and messages[0].value == 3
-
-
-def test_diagnostic_params_are_checked():
-    with pytest.raises(ValueError, match="mask_area_jump"):
-        DiagnosticParams(mask_area_jump=0)
-    with pytest.raises(ValueError, match="distance_jump_m"):
-        DiagnosticParams(distance_jump_m=-1)
-    with pytest.raises(ValueError, match="min_tool_area_px"):
-        DiagnosticParams(min_tool_area_px=0)
 
 
 def test_styles_cover_every_class_series_and_diagnostic():
     assert [s.class_id for s in LAYER_STYLES] == [0, 1, 2, 3, 4]
     assert layer_style(LAYER_BAND).name == "exterior band"
     assert len({s.rgba for s in LAYER_STYLES}) == len(LAYER_STYLES)
-    assert set(DIAGNOSTIC_STYLES) == set(DIAGNOSTIC_CODES)
+    assert set(DIAGNOSTIC_STYLES) == set(DIAGNOSTIC_CODES) | set(SESSION_DIAGNOSTIC_CODES)
     assert {"distance_mm", "signal", "force_n", "contact_truth", "posterior", "threshold", "predicted"} <= set(
         SERIES_STYLES)
     with pytest.raises(KeyError):

@@ -445,6 +445,8 @@ def view(
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
     cache_dir: CacheDir = None,
+    tool_diameter_mm: Annotated[float, typer.Option(min=0.1, help="The instrument's shaft diameter, mm, for the "
+                                "tool-width check (docs/diagnostics.md).")] = 8.0,
 ) -> None:
     """Run the pipeline frame by frame and log everything to one Rerun timeline.
 
@@ -482,6 +484,7 @@ def view(
     except (SessionError, ValueError) as exc:
         _fail(str(exc))
     typer.echo(session.depth_note, err=True)
+    from contact_viz.checks.params import DiagnosticParams
     from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames
     from contact_viz.geometry.pointcloud import CloudParams
     from contact_viz.viz.rerun_log import default_blueprint, open_recording
@@ -512,7 +515,8 @@ def view(
             with_right=right, right_step=right_step, depth_step=depth_step, points=points,
             cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
                               voxel_m=voxel_mm / 1000),
-            patch_params=params, hand_eye=camera_T_base if hand_eye is not None else None,
+            patch_params=params, diagnostics=DiagnosticParams(tool_diameter_mm=tool_diameter_mm),
+            hand_eye=camera_T_base if hand_eye is not None else None,
         )
         opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
                                 web_port=web_port, blueprint=default_blueprint(
@@ -548,6 +552,46 @@ def view(
                 time.sleep(1)
         except KeyboardInterrupt:
             pass
+
+
+@app.command()
+def check(
+    session_dirs: Annotated[list[Path], typer.Argument(help="Session directories.")],
+    json_path: Annotated[Optional[Path], typer.Option("--json", help="Also write every session's checks "
+                         "(frame ranges, counts, force lag, thresholds) to this JSON file.")] = None,
+    strict: Annotated[bool, typer.Option(help="Exit with status 1 when any check fired.")] = False,
+    tool_diameter_mm: Annotated[float, typer.Option(min=0.1, help="The instrument's shaft diameter, mm "
+                                "(docs/diagnostics.md).")] = 8.0,
+    cache_dir: CacheDir = None,
+    processes: Annotated[int, typer.Option(min=1, help="Processes per session, this one included.")] = 1,
+) -> None:
+    """Run the debugger's diagnostics on whole sessions, without Rerun: a table of checks per session."""
+    from contact_viz.checks.params import DiagnosticParams
+    from contact_viz.pipeline.check import report_table, run_check
+
+    if json_path is not None and json_path.exists() and json_path.is_dir():
+        _fail(f"--json {json_path}: is a directory; expected a file name")
+    for session_dir in session_dirs:
+        if json_path is not None and _inside(json_path, session_dir):
+            _fail(f"--json {json_path}: refusing to write inside the session directory {session_dir}")
+    try:
+        params = DiagnosticParams(tool_diameter_mm=tool_diameter_mm)
+    except ValueError as exc:
+        _fail(str(exc))
+
+    def report(r) -> None:
+        for line in report_table(r):
+            typer.echo(line)
+
+    reports, errors = run_check(session_dirs, params=params, cache_dir=cache_dir, processes=processes,
+                                json_path=json_path, on_report=report,
+                                on_error=lambda m: typer.secho(f"error: {m}", fg=typer.colors.RED, err=True))
+    if json_path is not None:
+        typer.echo(f"{json_path}: {len(reports)} session(s)")
+    if errors:
+        raise typer.Exit(code=2)
+    if strict and any(r.counts for r in reports):
+        raise typer.Exit(code=1)
 
 
 @app.command()

@@ -223,6 +223,10 @@ class PatchParams:
     band_scale: float = checked(0.1, ge=0)  # exterior band width per px of visible shaft width, px/px
     band_min_px: float = checked(2.0, gt=0)  # narrowest exterior band, px
     band_max_px: float = checked(8.0, gt=0)  # widest exterior band, px
+    # Depth bled from the tool over the tissue (issue 13; the bleeding test of geometry.patch._band_distances):
+    reject_bleeding: bool = True  # drop band pixels whose depth is nearer the tool's than the tissue's beyond, -
+    bleed_step_m: float = checked(0.004, gt=0)  # ... only where tool and tissue beyond differ by this, m
+    bleed_beyond_px: float = checked(4.0, ge=1)  # tissue beyond: background within this of the band, px
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -246,6 +250,11 @@ class PatchParams:
     def outer_reach_px(self) -> float:
         """Largest distance from the tool edge at which a band pixel can lie, px."""
         return self.ring_px + self.band_max_px
+
+    @property
+    def depth_reach_px(self) -> float:
+        """Largest distance from the tool edge at which the patch reads the depth, px."""
+        return self.outer_reach_px + (self.bleed_beyond_px if self.reject_bleeding else 0.0)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,11 @@ uniqueness test, then a left-right consistency check of our own (OpenCV's contri
 flipped pair, and a left pixel is kept only where the right view maps it back within
 ``lr_max_diff_px``.
 
+When the frame's tool mask is known, :func:`masked_sgbm_disparity` matches the tissue with the
+tool inpainted out of both views, so that the tool's disparity is not dragged over the tissue
+beside it (foreground fattening), which is where the contact patch reads the tissue (issue 13;
+docs/depth.md has the measurements).
+
 Disparities are cached per frame outside the session directory (``contact_viz.io.depth_cache``), as
 16-bit PNGs of the fixed-point (1/16 px) disparity, keyed by the session's path, the sizes and
 modification times of the calibration and image files they depend on, and the resolved
@@ -31,6 +36,8 @@ __all__ = [
     "DEPTH_METHODS",
     "SGBMParams",
     "disparity_to_depth",
+    "masked_sgbm_disparity",
+    "right_view_tool_mask",
     "sgbm_disparity",
 ]
 
@@ -74,6 +81,11 @@ class SGBMParams:
     lr_max_diff_px: float = checked(1.0, ge=0)  # left-right consistency tolerance, px
     mode: str = checked("sgbm_3way", choices=_MODES)  # OpenCV mode: sgbm, sgbm_3way (fast), hh (full 8-path, slow), hh4
     downscale: int = checked(1, ge=1)  # match at 1/downscale resolution, then upsample the disparity (faster, coarser)
+    # Mask-aware matching (masked_sgbm_disparity), used when the frame's tool mask is known:
+    tool_mask_aware: bool = True  # match the tissue with the tool removed (inpainted) from both views
+    tool_margin_px: int = checked(1, ge=0)  # the tool region removed grows by this in both views, px
+    occlusion_check: bool = True  # drop left pixels whose match lies behind the tool in the right view
+    tool_rows_pad_px: int = checked(16, ge=0)  # the tool's disparity is matched on its bbox grown by this, px
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -188,6 +200,126 @@ def sgbm_disparity(left_rgb: np.ndarray, right_rgb: np.ndarray, params: SGBMPara
         disparity[~left_right_check(disparity, flipped[:, ::-1], p.lr_max_diff_px)] = np.nan
     if n > 1:
         disparity = cv2.resize(disparity, (width, height), interpolation=cv2.INTER_NEAREST) * np.float32(n)
+    return disparity
+
+
+def _fill_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values`` with every pixel outside ``known`` replaced by the value of its nearest ``known`` pixel."""
+    if known.all():
+        return values.copy()
+    _, labels = cv2.distanceTransformWithLabels(
+        (~known).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    return values[known][labels - 1]  # labels number the known pixels in row-major order, from 1
+
+
+def right_view_tool_mask(tool_mask: np.ndarray, tool_disparity_px: np.ndarray, margin_px: int = 0) -> np.ndarray:
+    """Where the tool of the left view lies in the right view: (H, W) bool.
+
+    ``tool_mask`` (H, W) bool, the left view's tool; ``tool_disparity_px`` (H, W) float, the
+    disparity of every tool pixel (other pixels ignored; must be finite on the tool). Each tool
+    pixel (y, x) marks (y, floor(x - d)) and (y, ceil(x - d)); the result is closed along rows
+    over 1 px gaps and dilated by ``margin_px`` (square).
+    """
+    tool = np.asarray(tool_mask, dtype=bool)
+    height, width = tool.shape
+    ys, xs = np.nonzero(tool)
+    out = np.zeros((height, width), np.uint8)
+    x_right = xs - np.asarray(tool_disparity_px, dtype=np.float64)[ys, xs]
+    for col in (np.floor(x_right), np.ceil(x_right)):
+        col = col.astype(np.int64)
+        keep = (col >= 0) & (col < width)
+        out[ys[keep], col[keep]] = 1
+    out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((1, 3), np.uint8))
+    if margin_px > 0:
+        out = cv2.dilate(out, np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8))
+    return out.astype(bool)
+
+
+def _tool_disparity(left: np.ndarray, right: np.ndarray, tool: np.ndarray, p: SGBMParams) -> np.ndarray:
+    """Plain SGBM disparity around the tool, NaN elsewhere, (H, W) float32.
+
+    Matched on a crop: the tool's rows +- tool_rows_pad_px, and its columns from the search range
+    (plus the pad) left of it to the pad right of it, so that every tool pixel sees all its
+    candidate matches (about a quarter of the frame instead of all of it on the study's sessions).
+    """
+    rows = np.flatnonzero(tool.any(axis=1))
+    cols = np.flatnonzero(tool.any(axis=0))
+    pad = p.tool_rows_pad_px
+    reach = (p.num_disparities + max(p.min_disparity, 0)) * p.downscale
+    y0, y1 = max(int(rows[0]) - pad, 0), min(int(rows[-1]) + 1 + pad, tool.shape[0])
+    x0, x1 = max(int(cols[0]) - reach - pad, 0), min(int(cols[-1]) + 1 + pad, tool.shape[1])
+    if p.downscale > 1:  # keep the crop's corner on the matching grid
+        y0, x0 = y0 - y0 % p.downscale, x0 - x0 % p.downscale
+    out = np.full(tool.shape, np.nan, np.float32)
+    out[y0:y1, x0:x1] = sgbm_disparity(left[y0:y1, x0:x1], right[y0:y1, x0:x1], p)
+    return out
+
+
+def _inpaint_pair(left: np.ndarray, right: np.ndarray, left_region: np.ndarray, right_region: np.ndarray):
+    """Both views with their tool region filled from the surrounding background (OpenCV's Telea inpainting)."""
+    radius = 3  # px of background each filled pixel is drawn from
+    return (cv2.inpaint(left, left_region.astype(np.uint8), radius, cv2.INPAINT_TELEA),
+            cv2.inpaint(right, right_region.astype(np.uint8), radius, cv2.INPAINT_TELEA))
+
+
+def masked_sgbm_disparity(
+    left_rgb: np.ndarray,
+    right_rgb: np.ndarray,
+    tool_mask: np.ndarray,
+    params: SGBMParams = SGBMParams(),
+) -> np.ndarray:
+    """Disparity of a rectified pair whose left tool mask is known, without foreground fattening.
+
+    Block matching and the smoothness term of SGBM drag the disparity of a near object (the
+    tool) several pixels out over the background next to it, exactly where the contact patch
+    reads the tissue. Here the tool is taken out of both views instead: its pixels are inpainted
+    from the background around them (in the right view, the tool region is the left mask shifted
+    by the tool's own disparity; both grown by ``tool_margin_px``), so that no block beside the
+    tool can align with the tool's edge, and the background is matched on its own texture.
+    (Filling with noise, independent in the two views, was tried and is worse: OpenCV's
+    Birchfield-Tomasi cost finds noise cheap to match; see docs/depth.md.)
+
+    1. The tool's disparity: plain :func:`sgbm_disparity` on a crop around the tool (inside the
+       tool it is accurate); holes on the tool are filled from the nearest matched tool pixel.
+    2. The right-view tool region from it (:func:`right_view_tool_mask`).
+    3. :func:`sgbm_disparity` on the pair with both tool regions inpainted.
+    4. Result: step 1 on the (left) tool, step 3 elsewhere; with ``occlusion_check``, a left
+       pixel whose match falls in the right-view tool region (hidden behind the tool in the right
+       view: no depth can be measured there) is NaN.
+
+    ``tool_mask`` (H, W) bool or integer (nonzero = tool). Returns (H, W) float32 px, NaN where no
+    reliable match. An empty mask gives :func:`sgbm_disparity`.
+    """
+    left, right = _as_pair(left_rgb, right_rgb)
+    tool = np.asarray(tool_mask) != 0
+    if tool.shape != left.shape[:2]:
+        raise ValueError(f"tool_mask shape {tool.shape} differs from the images' {left.shape[:2]}")
+    if not tool.any():
+        return sgbm_disparity(left, right, params)
+    p = params.resolve(left.shape[1])
+    tool_disp = _tool_disparity(left, right, tool, p)
+    known = tool & np.isfinite(tool_disp)
+    margin = np.ones((2 * p.tool_margin_px + 1,) * 2, np.uint8)
+    left_region = cv2.dilate(tool.astype(np.uint8), margin).astype(bool)
+    if known.any():
+        filled = _fill_nearest(np.where(known, tool_disp, 0).astype(np.float32), known)
+        right_region = right_view_tool_mask(tool, filled, p.tool_margin_px)
+    else:  # the tool matched nowhere: its right-view place is unknown; only the left view is masked
+        right_region = np.zeros_like(tool)
+    left_m, right_m = _inpaint_pair(left, right, left_region, right_region)
+    disparity = sgbm_disparity(left_m, right_m, p)
+    disparity[left_region] = np.nan  # the margin beside the tool was inpainted: not measured
+    disparity[tool] = tool_disp[tool]
+    if p.occlusion_check and right_region.any():
+        height, width = tool.shape
+        outside = ~tool & np.isfinite(disparity)
+        ys, xs = np.nonzero(outside)
+        col = np.rint(xs - disparity[ys, xs]).astype(np.int64)
+        inside = (col >= 0) & (col < width)
+        hidden = np.zeros(ys.shape, bool)
+        hidden[inside] = right_region[ys[inside], col[inside]]
+        disparity[ys[hidden], xs[hidden]] = np.nan
     return disparity
 
 

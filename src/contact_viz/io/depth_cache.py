@@ -20,7 +20,7 @@ import numpy as np
 from contact_viz import __version__
 from contact_viz.io.atomic import atomic_write
 
-from contact_viz.geometry.stereo import SUBPIXEL, SGBMParams, sgbm_disparity
+from contact_viz.geometry.stereo import SUBPIXEL, SGBMParams, masked_sgbm_disparity, sgbm_disparity
 
 
 class CacheWarning(UserWarning):
@@ -90,11 +90,16 @@ class DisparityCache:
         key = hashlib.sha256(payload.encode()).hexdigest()[:24]
         return cls(base / "sgbm" / f"{root.name}-{key}", params)
 
-    def path(self, stem: str, left_path: Path, right_path: Path) -> Path | None:
-        """Where frame ``stem``'s disparity lives (None when caching is off)."""
+    def path(self, stem: str, left_path: Path, right_path: Path, mask_key: list | None = None) -> Path | None:
+        """Where frame ``stem``'s disparity lives (None when caching is off).
+
+        ``mask_key``: for mask-aware matching, what identifies the tool mask used (see
+        :meth:`disparity`); None for plain matching.
+        """
         if self.directory is None:
             return None
-        frame_key = json.dumps([_stat_key(left_path), _stat_key(right_path)])
+        frame_key = json.dumps([_stat_key(left_path), _stat_key(right_path)]
+                               + ([] if mask_key is None else [mask_key]))
         digest = hashlib.sha256(frame_key.encode()).hexdigest()[:12]
         return self.directory / f"{stem}-{digest}.png"
 
@@ -124,18 +129,33 @@ class DisparityCache:
                               "on every read", CacheWarning, stacklevel=2)
 
     def disparity(
-        self, stem: str, left_path: Path, right_path: Path, load_pair: Callable[[], tuple[np.ndarray, np.ndarray]]
+        self,
+        stem: str,
+        left_path: Path,
+        right_path: Path,
+        load_pair: Callable[[], tuple[np.ndarray, np.ndarray]],
+        mask_path: Path | None = None,
+        load_mask: Callable[[], np.ndarray] | None = None,
+        object_id: int | None = None,
     ) -> tuple[np.ndarray, bool]:
         """Frame ``stem``'s disparity from the cache, else computed from ``load_pair()`` and stored.
 
+        With ``mask_path`` and ``load_mask`` (and ``params.tool_mask_aware``), the disparity is
+        matched knowing the tool mask (:func:`masked_sgbm_disparity`) and the cache entry is keyed
+        by the mask file's name, size and mtime and the ``object_id`` selected from it too.
         Returns (disparity (H, W) float32 px, whether it came from the cache).
         """
-        path = self.path(stem, left_path, right_path)
+        use_mask = self.params.tool_mask_aware and mask_path is not None and load_mask is not None
+        mask_key = [*_stat_key(mask_path), object_id] if use_mask else None
+        path = self.path(stem, left_path, right_path, mask_key)
         cached = self.load(path)
         if cached is not None:
             return cached, True
         left, right = load_pair()
-        disparity = sgbm_disparity(left, right, self.params)
+        if use_mask:
+            disparity = masked_sgbm_disparity(left, right, load_mask(), self.params)
+        else:
+            disparity = sgbm_disparity(left, right, self.params)
         self.save(path, disparity)
         return disparity, False
 

@@ -260,13 +260,18 @@ class Session:
             decoded[side] = rgb
         return decoded[side]
 
-    def _mask(self, stem: str) -> np.ndarray:
+    def _mask(self, stem: str, decoded: dict[str, np.ndarray] | None = None) -> np.ndarray:
+        """Frame ``stem``'s tool mask (H, W) bool, rectified if needed; memoized in ``decoded``."""
+        if decoded is not None and "mask" in decoded:
+            return decoded["mask"]
         expected = self.root / "masks" / f"{stem}.png"
         path = self._layer_path(self._mask_files, stem, expected, "a tool mask PNG")
         tool_mask = read_tool_mask(path, self.object_id)
         self._check_shape(path, tool_mask.shape, "tool mask")
         if self.rectification is not None:
             tool_mask = self.rectification.apply("left", tool_mask, nearest=True)
+        if decoded is not None:
+            decoded["mask"] = tool_mask
         return tool_mask
 
     def _depth(self, stem: str, decoded: dict[str, np.ndarray]) -> tuple[np.ndarray, str]:
@@ -294,9 +299,11 @@ class Session:
             self._right_files, stem, self.root / "right" / f"{stem}.png",
             "a right image (SGBM depth needs the stereo pair)",
         )
+        mask_path = self._mask_files.get(stem)  # known tool mask: matched without foreground fattening
         disparity, cached = self._sgbm.disparity(
             stem, left_path, right_path,
             lambda: (self._image("left", stem, decoded), self._image("right", stem, decoded)),
+            mask_path=mask_path, load_mask=lambda: self._mask(stem, decoded), object_id=self.object_id,
         )
         return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
             "cached" if cached else "computed"
@@ -388,7 +395,7 @@ class Session:
         decoded: dict[str, np.ndarray] = {}  # rectified images decoded for this frame, shared by the layers
         try:
             if "mask" in layers:
-                tool_mask = self._mask(stem)
+                tool_mask = self._mask(stem, decoded)
             if "depth" in layers:
                 depth_m, _ = self._depth(stem, decoded)
                 depth_m.flags.writeable = False  # whatever its source, a frame's depth is read-only

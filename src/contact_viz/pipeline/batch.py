@@ -175,8 +175,7 @@ def _count_rows(outcome: SessionOutcome, rows: list[dict[str, str]]) -> None:
 
 
 def _count_checks(outcome: SessionOutcome, report: dict) -> None:
-    fired = report.get("fired", {})
-    outcome.checks_fired = {name: sum(b - a + 1 for a, b in ranges) for name, ranges in fired.items() if ranges}
+    outcome.checks_fired = {code: check["frames"] for code, check in report["checks"].items() if check["frames"]}
 
 
 def run_batch(

@@ -72,7 +72,7 @@ def check_task(job: SessionJob) -> dict:
     from contact_viz.pipeline.check import check_session
 
     start = time.perf_counter()
-    report = check_session(Path(job.path), cache_dir=job.cache_dir)
+    report = check_session(Path(job.path), cache_dir=job.cache_dir, patch_params=job.params, object_id=job.object_id)
     return {"report": report.to_dict(), "seconds": time.perf_counter() - start}
 
 

@@ -42,7 +42,7 @@ CHUNK_FRAMES = 8  # frames computed per job, in this process or a worker
 FEATURE_COLUMNS = (
     "frame", "timestamp", "distance_m", "signal", "patch_x", "patch_y", "force_n", "label",
     "label_source", "reason", "score_m", "tool_depth_m", "n_candidates", "shaft_width_px",
-    "band_width_px", "invalid_depth_fraction", "tool_area_px", "detail",
+    "band_width_px", "invalid_depth_fraction", "tool_area_px", "bleeding_px", "detail",
 )
 
 
@@ -145,6 +145,7 @@ def feature_row(session: Session, result: FrameResult, patch_row0: int = 0) -> d
         band_width_px=f"{patch.band_width_px:.2f}",
         invalid_depth_fraction=_blank(round(patch.invalid_depth_fraction, 6)),
         tool_area_px=patch.tool_area_px,
+        bleeding_px=patch.n_bleeding,
     )
     return {c: row.get(c, "") for c in FEATURE_COLUMNS}
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -1382,6 +1382,22 @@ def generate_session(
         shutil.rmtree(work, ignore_errors=True)
         raise
     return out_dir
+
+
+def true_depth(params: SynthParams, indices: Sequence[int]) -> dict[int, np.ndarray]:
+    """The exact left-view z-depth (H, W) float32 m, 0 = miss, of frames ``indices`` of the session
+    ``params`` makes (re-rendered: depth/ holds the stereo-like depth, with noise, bled tool edges
+    and holes). For measuring a depth source against the truth (recipes/sgbm_study.py)."""
+    camera, frame = stereo_camera(params), tissue_frame(params)
+    track = plan_tool_track(params)
+    renderer = _Renderer(params, camera, frame, _rng(params, _STREAM_TEXTURE))
+    out = {}
+    for i in indices:
+        i = int(i)
+        deformed = track.press_m[i] > 0 or bool(np.any(track.pull_m[i]))
+        displacement = tissue_displacement(renderer.rest, track, i, params) if deformed else None
+        out[i] = renderer.render(displacement, tool_parts(track, i, params))["left"]["z"].astype(np.float32)
+    return out
 
 
 def _render_session(out_dir: Path, name: str, params: SynthParams,

@@ -21,6 +21,7 @@ Library code: no typer, no printing.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import warnings
@@ -35,6 +36,7 @@ from contact_viz.viz import rerun_log
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
 from contact_viz.errors import NoPatchWarning, SessionError
+from contact_viz.pipeline.check import load_grey
 from contact_viz.pipeline.extract import iter_frame_results, run_config
 from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams, check_fields, checked, to_dict
@@ -115,6 +117,7 @@ class RunSummary:
     image_wait_s: float  # waiting for the images (read and decoded in their own thread), s
     prepare_s: float  # point cloud, patch geometry, depth preview, posterior, diagnostics, s
     log_s: float  # Rerun calls and flushes, s
+    diagnostic_ranges: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # code -> (first, last) frame runs
 
     @property
     def frames_per_s(self) -> float:
@@ -128,7 +131,12 @@ class RunSummary:
                    f"prepare {self.prepare_s:.1f} s, log {self.log_s:.1f} s")
         fired = {code: n for code, n in self.diagnostic_counts.items() if n}
         if fired:
-            out.append("diagnostics: " + ", ".join(f"{code} on {n} frame{'s' * (n != 1)}" for code, n in fired.items()))
+            out.append("diagnostics:")
+            for code, n in fired.items():
+                runs = self.diagnostic_ranges.get(code, [])
+                text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:8])
+                more = f", ... ({len(runs)} ranges)" if len(runs) > 8 else ""
+                out.append(f"  {code} on {n} frame{'s' * (n != 1)}" + (f": {text}{more}" if text else ""))
         else:
             out.append("diagnostics: none fired")
         return out
@@ -291,6 +299,11 @@ class _VideoStreams:
 # --------------------------------------------------------------------------------------------
 
 
+def _grey_pair(session: Session, with_right: bool, index: int):
+    """(left, right) grey images of a frame for the image checks (None where missing or unreadable)."""
+    return load_grey(session, "left", index), load_grey(session, "right", index) if with_right else None
+
+
 def _pose_samples(session: Session, options: DebuggerOptions) -> np.ndarray | None:
     """Index of the kinematics.csv row drawn at each frame (-1: none within the gap); None without a hand-eye."""
     if options.hand_eye is None:
@@ -349,7 +362,8 @@ def run_debugger(
     rerun_log.send_known_series(rec, session, indices, threshold=None if model is None else model.threshold)
     if model is None:
         rerun_log.log_model_hint(rec, indices[0], float(session.timestamps_s[indices[0]]))
-    tracker = DiagnosticsTracker(options.diagnostics)
+    tracker = DiagnosticsTracker(options.diagnostics, fx_px=float(K[0, 0]),
+                                 baseline_m=float(session.calibration.baseline_m), image_width=session.image_size[1])
     pose_of = _pose_samples(session, options)  # (n,) pose row per frame (-1 none), or None without --hand-eye
     stream = None if model is None else StreamingFilter(model.ensemble)
     reader = _ImageReader(session, options, with_right)
@@ -358,6 +372,8 @@ def run_debugger(
     images = prefetched(reader.load, indices, options.prefetch, workers=options.image_workers,
                         thread_name="contact-viz-images")
     videos = _VideoStreams(session, rec, options, with_right) if options.images == "video" else None
+    greys = prefetched(functools.partial(_grey_pair, session, with_right), indices, options.prefetch,
+                       thread_name="contact-viz-grey")  # what the image checks read
     done = bad = 0
     wait_s = image_wait_s = prepare_s = log_s = 0.0
     interrupted = False
@@ -371,7 +387,8 @@ def run_debugger(
             shown = next(images)
             t2 = time.perf_counter()
             frame, patch = result.frame, result.patch
-            diagnostics = tracker.update(result)
+            diag = tracker.update(result, *next(greys), evidence=True)
+            diagnostics = diag.fired
             posterior = predicted = None
             if stream is not None:
                 posterior = stream.update(math.nan if patch is None else patch.signal)
@@ -405,6 +422,8 @@ def run_debugger(
                     posterior=posterior,
                     predicted=predicted,
                     diagnostics=diagnostics,
+                    diagnostic_scores=diag.scores,
+                    evidence=diag.evidence,
                     notes=shown.notes,
                 )
                 t3 = time.perf_counter()
@@ -428,15 +447,21 @@ def run_debugger(
     finally:
         results.close()
         images.close()
+        greys.close()
         t5 = time.perf_counter()
         if videos is not None:
             videos.close()
+        session_checks = tracker.finish(session, indices[:done])
+        if session_checks:
+            last = indices[max(done - 1, 0)]
+            rerun_log.log_session_diagnostics(rec, session_checks, float(session.timestamps_s[last]))
         rec.flush()
         log_s += time.perf_counter() - t5
     return RunSummary(
         frames=done,
         bad_frames=bad,
         diagnostic_counts=dict(tracker.counts),
+        diagnostic_ranges=tracker.ranges(),
         interrupted=interrupted,
         elapsed_s=time.perf_counter() - started,
         wait_s=wait_s,

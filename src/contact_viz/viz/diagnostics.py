@@ -1,18 +1,12 @@
-"""Per-frame sanity checks on the stream of patch results, for the viewer and its end-of-run summary.
+"""The viewer's diagnostics: the checks of contact_viz.checks run frame by frame on the stream of results.
 
-Each check has a code (the keys of :data:`DIAGNOSTIC_CODES`):
-
-* ``bad_frame``: the frame's files could not be read (the session reader's BadFrame).
-* ``no_tool``: the tool mask has fewer than ``min_tool_area_px`` pixels.
-* ``mask_area_jump``: the tool mask area changed by more than ``mask_area_jump`` (relative) since
-  the previous readable frame: |A_t - A_prev| / max(A_t, A_prev); checked when both are nonzero.
-* ``invalid_depth``: more than ``max_invalid_depth_fraction`` of the exterior band has invalid depth.
-* ``no_patch``: the tool is there (nonempty mask) but no patch was found (PatchResult.reason set).
-* ``distance_jump``: |d_t - d_prev| > ``distance_jump_m`` against the previous readable frame,
-  when both have a distance.
-
-"Previous" means the previous frame that was processed and readable (bad frames are skipped, so a
-jump across a bad frame is still caught). Pure Python over the results; no I/O.
+Each check has a code (the keys of :data:`DIAGNOSTIC_CODES`, documented in docs/diagnostics.md):
+mask checks (``mask_dropout``, ``extra_blob``, ``mask_area_jump``, ``mask_image_edges``), depth-
+against-mask checks (``mask_on_tissue``, ``tool_depth_outside``, ``depth_holes``), scale and
+stereo checks (``tool_width``, ``stereo_residual``), ``frozen_depth``, and the patch's own
+(``bad_frame``, ``no_patch``, ``distance_jump``). Session checks (``force_lag``, ``frame_times``) run
+once at the end (:meth:`DiagnosticsTracker.finish`). The same :class:`FrameChecker` serves
+``contact-viz check``, so the viewer and the command flag the same frames.
 """
 
 from __future__ import annotations
@@ -22,103 +16,98 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contact_viz.geometry.patch import REASON_EMPTY_MASK
-from contact_viz.params import check_fields, checked
+from contact_viz.checks.frame import FrameEvidence, measure_frame
+from contact_viz.checks.params import DiagnosticParams
+from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, Diagnostic, FrameChecker, PatchNumbers, fired_ranges
+from contact_viz.checks.session import force_lag, frame_time_problems
 
-__all__ = ["DIAGNOSTIC_CODES", "Diagnostic", "DiagnosticParams", "DiagnosticsTracker"]
+__all__ = ["DIAGNOSTIC_CODES", "SESSION_DIAGNOSTIC_CODES", "Diagnostic", "DiagnosticParams", "DiagnosticsTracker",
+           "FrameDiagnostics"]
 
-DIAGNOSTIC_CODES: dict[str, str] = {
-    "bad_frame": "frame files could not be read",
-    "no_tool": "no tool in the mask",
-    "mask_area_jump": "tool mask area jumped",
-    "invalid_depth": "much invalid depth in the exterior band",
-    "no_patch": "no valid patch",
-    "distance_jump": "distance jumped",
-}
+DIAGNOSTIC_CODES: dict[str, str] = {code: what for code, (what, _) in CHECKS.items()}
+SESSION_DIAGNOSTIC_CODES: dict[str, str] = {code: what for code, (what, _) in SESSION_CHECKS.items()}
 
 
 @dataclass(frozen=True)
-class DiagnosticParams:
-    """Thresholds of the per-frame checks."""
+class FrameDiagnostics:
+    """The checks of one frame: those that fired, every check's score (value / threshold, > 1 fires), evidence."""
 
-    min_tool_area_px: int = checked(1, ge=1)  # fewer tool-mask pixels than this = no tool, px
-    # relative mask-area change that fires, |dA| / max(A_t, A_prev), fraction in (0, 1]
-    mask_area_jump: float = checked(0.5, gt=0, le=1)
-    # share of band pixels with invalid depth above which it fires, 0-1
-    max_invalid_depth_fraction: float = checked(0.5, ge=0, lt=1)
-    distance_jump_m: float = checked(0.005, gt=0)  # change of the patch distance between frames that fires, m
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-
-
-@dataclass(frozen=True)
-class Diagnostic:
-    """One check that fired at one frame."""
-
-    code: str  # key of DIAGNOSTIC_CODES
-    index: int  # frame index in the session
-    message: str  # one line for a log, with the measured value and the threshold
-    value: float  # the measured quantity (units as in the message; NaN for bad_frame / no_patch)
+    fired: list[Diagnostic]
+    scores: dict[str, float]
+    evidence: FrameEvidence | None
 
 
 class DiagnosticsTracker:
-    """Runs the checks frame by frame and counts how often each fired.
+    """Runs the checks frame by frame and keeps the frames each fired on.
 
-    ``update(frame_result)`` takes a :class:`contact_viz.pipeline.extract.FrameResult` (or anything with
-    ``frame`` and ``patch``; ``patch`` None = bad frame). ``counts`` maps every code to the number
-    of frames it fired on; ``frames`` is the number of frames seen.
+    ``update(frame_result, left_grey, right_grey)`` takes a
+    :class:`contact_viz.pipeline.extract.FrameResult` (``patch`` None = bad frame) and the frame's
+    grey images (or None). ``counts`` maps every code to the number of frames it fired on;
+    ``ranges()`` gives (first, last) frame runs; ``frames`` is the number of frames seen.
     """
 
-    def __init__(self, params: DiagnosticParams = DiagnosticParams()) -> None:
+    def __init__(self, params: DiagnosticParams = DiagnosticParams(), *, fx_px: float = math.nan,
+                 baseline_m: float = math.nan, image_width: int = 1920) -> None:
         self.params = params
-        self.counts: dict[str, int] = dict.fromkeys(DIAGNOSTIC_CODES, 0)
+        self.fx_px = fx_px
+        self.baseline_m = baseline_m
+        self.checker = FrameChecker(params, image_width)
+        self.counts: dict[str, int] = dict.fromkeys({**DIAGNOSTIC_CODES, **SESSION_DIAGNOSTIC_CODES}, 0)
+        self.fired_frames: dict[str, list[int]] = {}
         self.frames = 0
-        self._prev_area: int | None = None
-        self._prev_distance_m = math.nan
+        self._signal: dict[int, float] = {}
 
-    def update(self, frame_result) -> list[Diagnostic]:
-        """The checks that fire at this frame (in DIAGNOSTIC_CODES order); updates the counts."""
+    def update(self, frame_result, left_grey=None, right_grey=None, *, evidence: bool = False) -> FrameDiagnostics:
         frame, patch = frame_result.frame, frame_result.patch
         if patch is None:
             fired = [Diagnostic("bad_frame", frame.index, f"frame {frame.stem}: {frame.reason}", math.nan)]
+            scores, ev = {}, None
+            self.checker.reset_previous()
         else:
-            area = int(np.count_nonzero(frame.tool_mask))
-            fired = self.check(frame.index, area, patch.distance_m, patch.invalid_depth_fraction, patch.reason)
+            measures = measure_frame(frame.tool_mask, frame.depth_m, left_grey, right_grey, self.fx_px,
+                                     self.baseline_m, self.params, evidence=evidence)
+            numbers = PatchNumbers(float(patch.distance_m), None if patch.center_xy is None else
+                                   (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason)
+            fired, scores = self.checker.check(frame.index, measures, numbers)
+            ev = measures.evidence
+            self._signal[frame.index] = float(patch.signal)
         self.frames += 1
         for diagnostic in fired:
             self.counts[diagnostic.code] += 1
-        return fired
+            self.fired_frames.setdefault(diagnostic.code, []).append(diagnostic.index)
+        return FrameDiagnostics(fired, scores, ev)
 
-    def check(
-        self, index: int, tool_area_px: int, distance_m: float, invalid_depth_fraction: float, reason: str | None
-    ) -> list[Diagnostic]:
-        """The checks of one readable frame from its numbers; advances the previous-frame state.
+    def finish(self, session, indices) -> list[Diagnostic]:
+        """The session checks over the frames seen (force lag needs force; frame times), at the last frame."""
+        out: list[Diagnostic] = []
+        idx = np.asarray(list(indices), dtype=np.int64)
+        if idx.size == 0:
+            return out
+        last = int(idx[-1])
+        signal = np.array([self._signal.get(int(i), math.nan) for i in idx], dtype=np.float64)
+        times = np.asarray(session.timestamps_s, dtype=np.float64)[idx]
+        position = {int(i): k for k, i in enumerate(idx)}
+        suspect = np.zeros(idx.size, bool)
+        for frames in self.fired_frames.values():
+            suspect[[position[i] for i in frames if i in position]] = True
+        lag = force_lag(np.asarray(session.force_n, dtype=np.float64)[idx], signal, times, self.params,
+                        suspect=suspect)
+        if lag is not None and lag.fired:
+            out.append(Diagnostic("force_lag", last, f"force lags the distance signal by {lag.lag_frames:+d} frames "
+                                                     f"({lag.lag_s:+.3f} s; correlation {lag.correlation:.2f}, "
+                                                     f"{lag.zero_lag_correlation:.2f} at lag 0): "
+                                                     f"{SESSION_CHECKS['force_lag'][1]}", lag.lag_s))
+            self.fired_frames["force_lag"] = [int(i) for i in idx]
+        gaps = frame_time_problems(times, self.params)
+        if gaps:
+            out.append(Diagnostic("frame_times", last, f"{len(gaps)} frame(s) with a time step <= 0 or a gap, first at "
+                                                       f"frame {int(idx[gaps[0]])}: {SESSION_CHECKS['frame_times'][1]}",
+                                  float(len(gaps))))
+            self.fired_frames["frame_times"] = [int(idx[g]) for g in gaps]
+        for diagnostic in out:
+            self.counts[diagnostic.code] = len(self.fired_frames[diagnostic.code])
+        return out
 
-        Does not touch ``counts`` / ``frames`` (``update`` does).
-        """
-        p = self.params
-        fired: list[Diagnostic] = []
-        if tool_area_px < p.min_tool_area_px:
-            fired.append(Diagnostic("no_tool", index, f"tool mask has {tool_area_px} px "
-                                    f"(< {p.min_tool_area_px} px)", float(tool_area_px)))
-        prev_area = self._prev_area
-        if prev_area and tool_area_px:
-            change = abs(tool_area_px - prev_area) / max(tool_area_px, prev_area)
-            if change > p.mask_area_jump:
-                fired.append(Diagnostic("mask_area_jump", index, f"tool mask area {prev_area} -> {tool_area_px} px "
-                                        f"(change {change:.0%} > {p.mask_area_jump:.0%})", change))
-        if math.isfinite(invalid_depth_fraction) and invalid_depth_fraction > p.max_invalid_depth_fraction:
-            fired.append(Diagnostic("invalid_depth", index, f"{invalid_depth_fraction:.0%} of the exterior band has "
-                                    f"invalid depth (> {p.max_invalid_depth_fraction:.0%})", invalid_depth_fraction))
-        if reason is not None and reason != REASON_EMPTY_MASK:
-            fired.append(Diagnostic("no_patch", index, f"no valid patch ({reason})", math.nan))
-        prev_d = self._prev_distance_m
-        if math.isfinite(distance_m) and math.isfinite(prev_d) and abs(distance_m - prev_d) > p.distance_jump_m:
-            jump = abs(distance_m - prev_d)
-            fired.append(Diagnostic("distance_jump", index, f"distance {1000 * prev_d:.1f} -> "
-                                    f"{1000 * distance_m:.1f} mm (jump {1000 * jump:.1f} mm > "
-                                    f"{1000 * p.distance_jump_m:.1f} mm)", jump))
-        self._prev_area = tool_area_px
-        self._prev_distance_m = float(distance_m)
-        return fired
+    def ranges(self) -> dict[str, list[tuple[int, int]]]:
+        """Check code -> (first, last) frame runs it fired on (only codes that fired)."""
+        return {code: fired_ranges(frames) for code, frames in self.fired_frames.items() if frames}

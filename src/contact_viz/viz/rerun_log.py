@@ -30,7 +30,10 @@ Entity tree (the README lists it too)::
     series/contact/threshold       Scalars: decision threshold (send_columns, only with a model)
     series/contact/predicted       Scalars: posterior >= threshold, 0/1 (only with a model)
     series/diagnostics/invalid_depth_fraction   Scalars: share of band pixels with invalid depth
-    series/diagnostics/<code>      Scalars (points): a marker at each frame where that check fired
+    series/diagnostics/<code>      Scalars (points): a marker at each frame where that check fired (at its score)
+    series/diagnostics/score/<code>  Scalars: the check's measured value / its threshold (> 1 fires), clipped at 3
+    world/camera/left/evidence/residual  EncodedImage: stereo residual |left - warped right| near the tool (fired frames)
+    world/camera/left/evidence/contour   Points2D: mask contour, green on an image edge, red off (fired frames)
     log                            TextLog: bad frames, diagnostics, the no-model hint
     config                         TextDocument (static): the run's resolved configuration (JSON)
 
@@ -52,7 +55,8 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun import RecordingStream
 
-from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, Diagnostic
+from contact_viz.checks.frame import FrameEvidence
+from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, SESSION_DIAGNOSTIC_CODES, Diagnostic
 from contact_viz.geometry.pointcloud import Cloud, PatchGeometry
 from contact_viz.io.session import BadFrame, Session
 from contact_viz.params import MM_PER_M
@@ -107,6 +111,8 @@ __all__ = [
     "TIMELINE_TIME",
     "default_blueprint",
     "diagnostic_entity",
+    "diagnostic_score_entity",
+    "log_session_diagnostics",
     "log_bad_frame",
     "log_frame",
     "log_model_hint",
@@ -151,6 +157,10 @@ ENTITY_SERIES_THRESHOLD = "series/contact/threshold"
 ENTITY_SERIES_PREDICTED = "series/contact/predicted"
 ENTITY_SERIES_DIAGNOSTICS = "series/diagnostics"
 ENTITY_SERIES_INVALID_DEPTH = "series/diagnostics/invalid_depth_fraction"
+ENTITY_SERIES_SCORES = "series/diagnostics/score"
+ENTITY_LEFT_EVIDENCE = "world/camera/left/evidence"
+ENTITY_EVIDENCE_RESIDUAL = "world/camera/left/evidence/residual"
+ENTITY_EVIDENCE_CONTOUR = "world/camera/left/evidence/contour"
 ENTITY_LOG = "log"
 ENTITY_KINEMATIC_TIP = "world/kinematics/tip"  # Points3D: the robot's tool tip (hand-eye x kinematics.csv)
 ENTITY_KINEMATIC_AXES = "world/kinematics/axes"  # Arrows3D: the tool frame's x, y, z axes at the tip
@@ -165,7 +175,11 @@ TIMELINE_TIME = "time"  # duration timeline: session time, s
 IMAGE_PLANE_DISTANCE_M = 0.015  # how far from each camera its image is drawn in the 3D view, m
 GAP_ARROW_RADIUS_M = 0.0002  # shaft radius of the gap arrow, m
 BOX_LINE_RADIUS_PX = 1.5  # half line width of the patch box, UI px (negative radii in Rerun = UI units)
-DIAGNOSTIC_LEVEL_STEP = 0.1  # height between two diagnostics' marker rows, above the invalid-depth fraction (0-1)
+SCORE_CLIP = 3.0  # diagnostic scores (value / threshold) are drawn clipped at this, ratio
+EVIDENCE_OPACITY = 0.7  # opacity of the stereo-residual image over the left image, 0-1
+EVIDENCE_MAX_POINTS = 3000  # contour points drawn at most (evenly subsampled), count
+EVIDENCE_CHECKS = ("mask_image_edges", "mask_on_tissue", "tool_depth_outside", "stereo_residual", "frozen_depth",
+                   "tool_width", "extra_blob")  # checks whose firing frames get the residual and contour pictures
 
 # Default 3D camera of the blueprint, in the world (= left camera) frame, RDF, m: above, to the left of and
 # slightly behind the stereo camera, looking at a point on the optical axis at a typical endoscopic working
@@ -195,13 +209,15 @@ def diagnostic_entity(code: str) -> str:
     return f"{ENTITY_SERIES_DIAGNOSTICS}/{code}"
 
 
-def _diagnostic_level(code: str) -> float:
-    """Height of a diagnostic's markers: 1 + DIAGNOSTIC_LEVEL_STEP x its position in DIAGNOSTIC_CODES.
+def diagnostic_score_entity(code: str) -> str:
+    """Entity path of the score series (measured value / threshold) of diagnostic ``code``."""
+    return f"{ENTITY_SERIES_SCORES}/{code}"
 
-    A raster of marker rows just above the invalid-depth fraction (0-1) that shares their plot, so
-    neither is squashed by the other's scale.
-    """
-    return 1.0 + DIAGNOSTIC_LEVEL_STEP * list(DIAGNOSTIC_CODES).index(code)
+
+def _marker_height(code: str, scores) -> float:
+    """Where a firing check's marker sits: on its score line (clipped), or at 1 for checks without a score."""
+    score = (scores or {}).get(code)
+    return min(float(score), SCORE_CLIP) if score is not None and math.isfinite(score) else 1.0
 
 
 @dataclass(frozen=True)
@@ -221,6 +237,8 @@ class FrameView:
     posterior: float | None  # causal HMM posterior P(contact) (None = no model)
     predicted: bool | None  # posterior >= threshold (None = no model)
     diagnostics: Sequence[Diagnostic] = ()  # checks that fired at this frame
+    diagnostic_scores: dict | None = None  # check code -> measured value / threshold (> 1 fires)
+    evidence: FrameEvidence | None = None  # residual image and contour of the frame checks
     has_right: bool = False  # the session has a right image here (if right_* are None it is cleared)
     left_in_video: bool = False  # the left image goes to its video stream (log_video_samples), not logged here
     right_in_video: bool = False  # the right image goes to its video stream
@@ -296,7 +314,7 @@ def log_static(
         rec.log(ENTITY_SERIES_PREDICTED, _series_lines("predicted"), static=True)
     rec.log(ENTITY_SERIES_INVALID_DEPTH, _series_lines("invalid_depth_fraction"), static=True)
     markers = list(rr.components.MarkerShape)
-    for k, code in enumerate(DIAGNOSTIC_CODES):
+    for k, code in enumerate({**DIAGNOSTIC_CODES, **SESSION_DIAGNOSTIC_CODES}):
         style = DIAGNOSTIC_STYLES[code]
         rec.log(
             diagnostic_entity(code),
@@ -304,6 +322,8 @@ def log_static(
                             marker_sizes=[style.width_px]),
             static=True,
         )
+        rec.log(diagnostic_score_entity(code), rr.SeriesLines(colors=[style.rgba], widths=[1.0],
+                                                              names=[f"{style.name} (score)"]), static=True)
 
 
 def _scaled_K(K: np.ndarray, step: int) -> np.ndarray:
@@ -358,8 +378,7 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
         images = rrb.Horizontal(left, depth, column_shares=[1, 1])
     contact_name = ("contact (0/1): truth, HMM posterior, threshold, prediction" if with_model
                     else "contact (0/1): ground truth")
-    n_levels = len(DIAGNOSTIC_CODES)
-    diagnostics_top = 1.0 + DIAGNOSTIC_LEVEL_STEP * n_levels
+    diagnostics_top = SCORE_CLIP + 0.1
     series = [
         rrb.TimeSeriesView(name="distance (mm)", origin=ENTITY_SERIES_DISTANCE, axis_x=linked,
                            plot_legend=no_legend),
@@ -373,10 +392,11 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
         # the log shares a tab with the diagnostics plot: a sixth row would leave the plots too low for
         # the viewer to label their y axes
         rrb.Tabs(
-            rrb.TimeSeriesView(name="diagnostics: invalid depth (fraction), checks fired (markers)",
+            rrb.TimeSeriesView(name="diagnostics: score = measured / threshold (> 1 fires; markers), invalid depth",
                                origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked,
                                axis_y=rrb.ScalarAxis(range=(-0.05, diagnostics_top)),
-                               plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftBottom)),
+                               # 2 series per check: a legend would cover the plot; hover names them, `log` says why
+                               plot_legend=rrb.PlotLegend(visible=False)),
             rrb.TextLogView(name="log", origin=ENTITY_LOG),
             *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=ENTITY_SERIES_TIP,
                                   axis_x=linked)] if with_kinematics else []),
@@ -497,9 +517,12 @@ def _log_contact(rec: rr.RecordingStream, posterior: float | None, predicted: bo
         _log_series(rec, ENTITY_SERIES_PREDICTED, 1.0 if predicted else 0.0)
 
 
-def _log_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic], notes: Sequence[str]) -> None:
+def _log_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic], notes: Sequence[str],
+                     scores: dict | None = None) -> None:
+    for code, score in (scores or {}).items():
+        _log_series(rec, diagnostic_score_entity(code), min(score, SCORE_CLIP))
     for diagnostic in diagnostics:
-        _log_series(rec, diagnostic_entity(diagnostic.code), _diagnostic_level(diagnostic.code))
+        _log_series(rec, diagnostic_entity(diagnostic.code), _marker_height(diagnostic.code, scores))
         if diagnostic.code != "bad_frame":  # log_bad_frame writes that one's text
             rec.log(ENTITY_LOG, rr.TextLog(f"frame {diagnostic.index}: {diagnostic.message}",
                                            level=rr.TextLogLevel.WARN))
@@ -551,7 +574,50 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
     _log_series(rec, ENTITY_SERIES_SIGNAL, patch.signal)
     _log_series(rec, ENTITY_SERIES_INVALID_DEPTH, patch.invalid_depth_fraction)
     _log_contact(rec, view.posterior, view.predicted)
-    _log_diagnostics(rec, view.diagnostics, view.notes)
+    _log_diagnostics(rec, view.diagnostics, view.notes, view.diagnostic_scores)
+    _log_evidence(rec, view.evidence if any(d.code in EVIDENCE_CHECKS for d in view.diagnostics) else None,
+                  frame.tool_mask.shape)
+
+
+def _log_evidence(rec: rr.RecordingStream, evidence: FrameEvidence | None, shape: tuple[int, int]) -> None:
+    """The pictures behind the frame checks, on frames where one fired; cleared on the others.
+
+    The stereo residual (JPEG, inferno colours x4: black = the depth explains the pair, yellow = 64+
+    grey levels off) where it was measured near the tool, over the grey left image, and the mask contour: green where it lies on an image edge, red where not.
+    """
+    if evidence is None:
+        rec.log(ENTITY_LEFT_EVIDENCE, rr.Clear(recursive=True))
+        return
+    import cv2
+
+    x, y, w, h = evidence.residual_xywh
+    # grey left image everywhere, the residual in colour where it was measured
+    grey = evidence.left_grey if evidence.left_grey is not None else np.zeros(shape, np.uint8)
+    colour = cv2.cvtColor(np.asarray(grey, dtype=np.uint8), cv2.COLOR_GRAY2BGR)
+    heat = cv2.applyColorMap(np.clip(evidence.residual.astype(np.float32) * 4.0, 0, 255).astype(np.uint8),
+                             cv2.COLORMAP_INFERNO)
+    crop = colour[y:y + h, x:x + w]
+    crop[evidence.region] = heat[evidence.region]
+    ok, jpeg = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, 70])
+    if ok:
+        rec.log(ENTITY_EVIDENCE_RESIDUAL, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg",
+                                                          opacity=EVIDENCE_OPACITY, draw_order=0.5))
+    points = evidence.contour_xy
+    on_edge = evidence.contour_on_edge
+    if len(points) > EVIDENCE_MAX_POINTS:
+        keep = np.linspace(0, len(points) - 1, EVIDENCE_MAX_POINTS).astype(np.int64)
+        points, on_edge = points[keep], on_edge[keep]
+    colours = np.where(on_edge[:, None], np.array([[0, 158, 115, 255]], np.uint8),
+                       np.array([[213, 94, 0, 255]], np.uint8))
+    rec.log(ENTITY_EVIDENCE_CONTOUR, rr.Points2D(points + 0.5, colors=colours, radii=[-1.5], draw_order=40.0))
+
+
+def log_session_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic], timestamp_s: float) -> None:
+    """The session checks (force lag, frame times), at the frame each names: a marker and a log warning."""
+    for diagnostic in diagnostics:
+        set_frame_time(rec, diagnostic.index, timestamp_s)
+        _log_series(rec, diagnostic_entity(diagnostic.code), 1.0)
+        rec.log(ENTITY_LOG, rr.TextLog(f"session: {diagnostic.message}", level=rr.TextLogLevel.WARN))
 
 
 KINEMATIC_AXIS_M = 0.005  # drawn length of the tool frame's axes, m

@@ -138,14 +138,23 @@ SERIES_STYLES: dict[str, SeriesStyle] = {
     "invalid_depth_fraction": SeriesStyle("invalid depth in band (fraction)", LIGHT_GREY, 1.5),
 }
 
-# One colour per diagnostic code (contact_viz.viz.diagnostics), drawn as markers where the check fires.
+# One colour per diagnostic code (contact_viz.checks.rules), for its score line and its markers where it fires.
 DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
     "bad_frame": SeriesStyle("bad frame", WHITE, 6.0),
-    "no_tool": SeriesStyle("no tool in mask", SKY_BLUE, 6.0),
+    "mask_dropout": SeriesStyle("mask dropout", SKY_BLUE, 6.0),
+    "extra_blob": SeriesStyle("extra mask blob", BLUE, 6.0),
     "mask_area_jump": SeriesStyle("mask area jump", ORANGE, 6.0),
-    "invalid_depth": SeriesStyle("invalid depth in band", GREY, 6.0),
+    "mask_image_edges": SeriesStyle("mask off image edges", YELLOW, 6.0),
+    "mask_on_tissue": SeriesStyle("mask rim on tissue depth", BLUISH_GREEN, 6.0),
+    "tool_depth_outside": SeriesStyle("tool depth outside mask", REDDISH_PURPLE, 6.0),
+    "depth_holes": SeriesStyle("depth holes at the tool", GREY, 6.0),
+    "tool_width": SeriesStyle("tool width vs diameter", LIGHT_GREY, 6.0),
+    "stereo_residual": SeriesStyle("stereo residual", VERMILLION, 6.0),
+    "frozen_depth": SeriesStyle("frozen depth", WHITE, 6.0),
     "no_patch": SeriesStyle("no valid patch", REDDISH_PURPLE, 6.0),
     "distance_jump": SeriesStyle("distance jump", VERMILLION, 6.0),
+    "force_lag": SeriesStyle("force out of sync", ORANGE, 6.0),
+    "frame_times": SeriesStyle("frame time gaps", GREY, 6.0),
 }
 
 

@@ -1,0 +1,302 @@
+"""The study of issue 13: contact detection with classical stereo (SGBM) depth instead of the rendered one.
+
+    python recipes/sgbm_study.py                        # 640x360, 150 frames, into .study/
+    python recipes/sgbm_study.py --first-frames 75      # the same sessions, their first 75 frames (faster)
+
+Ten ``contact-viz synth`` sessions (six ``cup`` for training, seeds 1300-1305; one test session
+each on ``cup``, ``kidney``, ``liver`` and ``glove``, seeds 1310-1313) are generated once into
+``DIR/sessions`` and reused. For each depth source the LOSO HMM ensemble is fitted on the six and
+evaluated on the four (what `contact-viz fit` and `evaluate` do), and Table 1 is printed:
+
+* rendered: the session's depth/ (synth's stereo-like depth: disparity noise, the tool's depth
+  bled 1 px past its edge at 640 px, holes; the stand-in for FoundationStereo);
+* SGBM: depth/ removed (``DIR/stereo/<name>``, hard links of the other files), depth from the
+  stereo pair by OpenCV SGBM as before issue 13 (``SGBMParams(tool_mask_aware=False)``);
+* SGBM, mask-aware: the same pair matched knowing the tool mask (the default since issue 13;
+  contact_viz.geometry.stereo.masked_sgbm_disparity).
+
+Then the band error profile on the test sessions (every ``--profile-step``-th frame): the depth
+error of background pixels by their distance from the mask edge (1..15 px; median and 10th
+percentile, mm), against the exact depth re-rendered by contact_viz.synth.true_depth, and the
+share of the exterior band's valid pixels within 3 mm of the true tissue depth.
+
+Then edge bleeding on a depth file (``--bleed-px``): the rendered depth with the tool's depth
+dilated k px further into the tissue, with the patch as before (``reject_bleeding=False``) and
+with the bleeding test (the default), Table 1 macro rows.
+
+Everything computed is cached under ``DIR`` (features and disparities in ``DIR/cache``, true depth
+in ``DIR/truth``); the printed figures go to ``DIR/results.json`` too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from contact_viz.geometry.depth_edges import edge_error_profile
+from contact_viz.geometry.patch import LAYER_BAND, compute_patch
+from contact_viz.geometry.stereo import SGBMParams
+from contact_viz.io.session import BadFrame, open_session
+from contact_viz.model.hmm import LosoEnsemble
+from contact_viz.model.metrics import format_table, macro_mean, session_metrics, MACRO_ROW
+from contact_viz.params import LabelParams, PatchParams
+from contact_viz.pipeline.extract import cached_features, extract_features, feature_arrays
+
+TRAIN = [(f"cup_train_{k}", "cup", 1300 + k) for k in range(6)]
+TEST = [("cup_test", "cup", 1310), ("kidney_test", "kidney", 1311), ("liver_test", "liver", 1312),
+        ("glove_test", "glove", 1313)]
+SOURCES = {  # depth source -> SGBM parameters (None = the session's depth/)
+    "rendered": None,
+    "SGBM": SGBMParams(tool_mask_aware=False),
+    "SGBM, mask-aware": SGBMParams(),
+}
+METHODS = {  # Table 1 row group -> (depth source, patch parameters)
+    "rendered depth": ("rendered", PatchParams()),
+    "SGBM, as before issue 13": ("SGBM", PatchParams(reject_bleeding=False)),
+    "SGBM + the patch's bleeding test": ("SGBM", PatchParams()),
+    "SGBM, mask-aware + bleeding test (default)": ("SGBM, mask-aware", PatchParams()),
+}
+PROFILE_PX = 15  # band profile: background pixels 1..this far from the mask edge, px
+WITHIN_M = 0.003  # band accuracy: within this of the true tissue depth, m
+
+
+def log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def make_sessions(directory: Path, frames: int, size: tuple[int, int]) -> None:
+    """Generate the ten sessions into ``directory/sessions`` unless already there with these settings."""
+    from contact_viz.synth import SynthParams, generate_session
+
+    for name, phantom, seed in TRAIN + TEST:
+        out = directory / "sessions" / name
+        params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=size[0], height=size[1])
+        info = out / "session.json"
+        if info.is_file():
+            g = json.loads(info.read_text()).get("generator", {})
+            if (g.get("frames"), g.get("width"), g.get("height"), g.get("seed")) == (frames, *size, seed):
+                continue
+            raise SystemExit(f"{out}: a session with other settings is there ({g.get('frames')} frames at "
+                             f"{g.get('width')}x{g.get('height')}); choose another --dir")
+        log(f"synth {name} ({phantom}, seed {seed}, {frames} frames at {size[0]}x{size[1]})")
+        generate_session(out, params)
+
+
+def stereo_only(src: Path, dst: Path) -> Path:
+    """A copy of session ``src`` without depth/ (hard links where possible), so that SGBM computes it."""
+    if (dst / "session.json").is_file():
+        return dst
+    tmp = dst.with_name(f".{dst.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for path in sorted(src.rglob("*")):
+        rel = path.relative_to(src)
+        if rel.parts[0] == "depth" or path.is_dir():
+            continue
+        target = tmp / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(path, target)
+        except OSError:
+            shutil.copy2(path, target)
+    tmp.rename(dst)
+    return dst
+
+
+def source_root(directory: Path, source: str, name: str) -> Path:
+    root = directory / "sessions" / name
+    return root if SOURCES[source] is None else stereo_only(root, directory / "stereo" / name)
+
+
+def open_source(directory: Path, source: str, name: str, cache_dir: Path):
+    return open_session(source_root(directory, source, name), sgbm_params=SOURCES[source], cache_dir=cache_dir)
+
+
+def table1(signals: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, dict]:
+    """Fit the LOSO ensemble on the training sessions' (signal, labels), score the test sessions."""
+    train = [signals[name] for name, _, _ in TRAIN]
+    ensemble = LosoEnsemble().fit([s for s, _ in train], [y for _, y in train],
+                                  session_names=[name for name, _, _ in TRAIN])
+    rows = {}
+    for name, _, _ in TEST:
+        signal, labels = signals[name]
+        rows[name] = session_metrics(labels, ensemble.predict_proba(signal), ensemble.threshold_, name)
+    rows[MACRO_ROW] = macro_mean(rows)
+    return rows
+
+
+def source_signals(directory: Path, source: str, params: PatchParams, cache_dir: Path, processes: int,
+                   first: int | None) -> dict:
+    out = {}
+    for name, _, _ in TRAIN + TEST:
+        session = open_source(directory, source, name, cache_dir)
+        start = time.perf_counter()
+        if first is None:
+            rows, cached = cached_features(session, params, cache_dir=cache_dir, processes=processes)
+        else:
+            rows, cached = extract_features(session, params, indices=range(min(first, len(session))),
+                                            processes=processes), False
+        log(f"  {source}: {name} {'(cached)' if cached else f'in {time.perf_counter() - start:.0f} s'}")
+        out[name] = feature_arrays(rows)
+    return out
+
+
+def truth_depth(directory: Path, name: str, indices: list[int]) -> dict[int, np.ndarray]:
+    """The exact depth of frames ``indices`` of session ``name``, re-rendered once and kept in DIR/truth."""
+    from contact_viz.synth import SynthParams, true_depth
+
+    path = directory / "truth" / f"{name}.npz"
+    if path.is_file():
+        data = np.load(path)
+        if all(f"f{i}" in data.files for i in indices):
+            return {i: data[f"f{i}"] for i in indices}
+    g = json.loads((directory / "sessions" / name / "session.json").read_text())["generator"]
+    params = SynthParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in g.items()})
+    depth = true_depth(params, indices)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **{f"f{i}": d for i, d in depth.items()})
+    return depth
+
+
+def band_profile(directory: Path, cache_dir: Path, step: int, first: int | None) -> dict[str, dict]:
+    """Per source: median and 10th percentile of the depth error (m) at 1..PROFILE_PX px from the mask
+    edge, and the share of valid exterior-band pixels within WITHIN_M of the true depth."""
+    errors = {s: [[] for _ in range(PROFILE_PX)] for s in SOURCES}
+    band = {s: [0, 0, 0] for s in SOURCES}  # within, valid, band pixels
+    for name, _, _ in TEST:
+        sessions = {s: open_source(directory, s, name, cache_dir) for s in SOURCES}
+        indices = list(range(0, min(first or len(sessions["rendered"]), len(sessions["rendered"])), step))
+        truth = truth_depth(directory, name, indices)
+        for i in indices:
+            frame = sessions["rendered"].load_frame(i, ("mask",))
+            if isinstance(frame, BadFrame):
+                continue
+            true_m = np.where(truth[i] > 0, truth[i], np.nan).astype(np.float32)
+            in_band = compute_patch(true_m, frame.tool_mask).layer_ids == LAYER_BAND
+            for s, session in sessions.items():
+                depth = session.load_depth(i)
+                if isinstance(depth, BadFrame):
+                    continue
+                for k, e in enumerate(edge_error_profile(depth, true_m, frame.tool_mask, PROFILE_PX)):
+                    errors[s][k].append(e)
+                with np.errstate(invalid="ignore"):
+                    valid = in_band & np.isfinite(depth) & (depth > 0) & np.isfinite(true_m)
+                    band[s][0] += int((np.abs(depth - true_m)[valid] < WITHIN_M).sum())
+                band[s][1] += int(valid.sum())
+                band[s][2] += int(in_band.sum())
+    out = {}
+    for s in SOURCES:
+        pooled = [np.concatenate(e) if e else np.zeros(0) for e in errors[s]]
+        out[s] = {
+            "median_m": [float(np.median(e)) if e.size else None for e in pooled],
+            "p10_m": [float(np.percentile(e, 10)) if e.size else None for e in pooled],
+            "band_within_3mm": band[s][0] / max(band[s][1], 1),
+            "band_valid": band[s][1] / max(band[s][2], 1),
+        }
+    return out
+
+
+def bleed(depth_m: np.ndarray, tool: np.ndarray, px: int) -> np.ndarray:
+    """``depth_m`` with the tool's depth spread ``px`` px out over the tissue: each background pixel with a
+    valid depth within ``px`` of the tool takes the nearest (smallest) tool depth within that disc."""
+    if px <= 0 or not tool.any():
+        return depth_m
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1))
+    far = np.float32(1e30)  # "no tool depth here" (OpenCV's erode pads with FLT_MAX, not inf)
+    tool_depth = np.where(tool & (depth_m > 0), depth_m, far).astype(np.float32)
+    spread = cv2.erode(tool_depth, kernel)
+    take = ~tool & (spread < far) & (depth_m > 0)  # the tissue's depth is replaced; holes stay holes
+    out = depth_m.copy()
+    out[take] = spread[take]
+    return out
+
+
+def bleeding_study(directory: Path, cache_dir: Path, widths: list[int], first: int | None):
+    """Macro Table-1 rows with the rendered depth bled k px, patch without and with the bleeding test."""
+    variants = {"as before": PatchParams(reject_bleeding=False), "bleeding test": PatchParams()}
+    signals = {(k, v): {} for k in widths for v in variants}
+    for name, _, _ in TRAIN + TEST:
+        session = open_source(directory, "rendered", name, cache_dir)
+        count = min(first or len(session), len(session))
+        labels = np.asarray(session.labels)[:count]
+        sig = {key: np.full(count, np.nan) for key in signals}
+        for frame in session.iter_frames(("mask", "depth"), indices=range(count)):
+            if isinstance(frame, BadFrame):
+                continue
+            tool = frame.tool_mask != 0
+            for k in widths:
+                depth = bleed(np.asarray(frame.depth_m), tool, k)
+                for v, params in variants.items():
+                    sig[(k, v)][frame.index] = compute_patch(depth, tool, params).signal
+        for key in signals:
+            signals[key][name] = (sig[key], labels)
+        log(f"  bleeding: {name}")
+    changed = {k: sum(int(np.sum(~np.isclose(signals[(k, "as before")][n][0], signals[(k, "bleeding test")][n][0],
+                                             rtol=0, atol=1e-12, equal_nan=True))) for n in signals[(k, "as before")])
+               for k in widths}
+    for k in widths:
+        log(f"  bled {k} px: the bleeding test changed the signal of {changed[k]} frames")
+    return {f"bled {k} px, {v}": table1(signals[(k, v)])[MACRO_ROW] for k in widths for v in variants}, changed
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--dir", type=Path, default=Path(".study"), help="where sessions and caches go")
+    parser.add_argument("--frames", type=int, default=150, help="frames per session")
+    parser.add_argument("--size", default="640x360", help="image size WIDTHxHEIGHT")
+    parser.add_argument("--processes", type=int, default=2, help="processes for feature extraction")
+    parser.add_argument("--profile-step", type=int, default=5, help="band profile on every n-th test frame")
+    parser.add_argument("--bleed-px", default="0,2,4,6", help="bleeding widths to test, px (comma-separated)")
+    parser.add_argument("--first-frames", type=int, default=None,
+                        help="use only the first N frames of each session (all sessions and methods alike)")
+    args = parser.parse_args(argv)
+    size = tuple(int(v) for v in args.size.lower().split("x"))
+    directory = args.dir.resolve()
+    cache_dir = directory / "cache"
+    make_sessions(directory, args.frames, size)
+    results: dict = {"frames": args.frames, "first_frames": args.first_frames, "size": args.size, "tables": {}}
+    if args.first_frames:
+        print(f"(only the first {args.first_frames} of the {args.frames} frames of each session are used)")
+    for method, (source, params) in METHODS.items():
+        log(f"== {method}")
+        results["tables"][method] = table1(source_signals(directory, source, params, cache_dir, args.processes,
+                                                          args.first_frames))
+    for method, rows in results["tables"].items():
+        print(f"\nTable 1, {method}")
+        print(format_table(rows))
+    log("== band error profile")
+    profile = results["band_profile"] = band_profile(directory, cache_dir, args.profile_step, args.first_frames)
+    print(f"\nBand error profile (test sessions, every {args.profile_step}th frame): depth - true depth, mm, "
+          "by distance from the mask edge")
+    print("px    " + "".join(f"{s + ' med':>22s}{'p10':>8s}" for s in SOURCES))
+    for k in range(PROFILE_PX):
+        mm = {s: [1000 * (profile[s][q][k] if profile[s][q][k] is not None else np.nan) for q in ("median_m", "p10_m")]
+              for s in SOURCES}
+        cells = "".join(f"{mm[s][0]:22.2f}{mm[s][1]:8.2f}" for s in SOURCES)
+        print(f"{k + 1:<6d}{cells}")
+    for s in SOURCES:
+        print(f"{s}: exterior band pixels within 3 mm of the true depth: {100 * profile[s]['band_within_3mm']:.1f}% "
+              f"of valid ones ({100 * profile[s]['band_valid']:.1f}% of band pixels valid)")
+    widths = [int(v) for v in args.bleed_px.split(",") if v.strip()]
+    if widths:
+        log("== edge bleeding on the rendered depth")
+        bled, changed = bleeding_study(directory, cache_dir, widths, args.first_frames)
+        results["bleeding"], results["bleeding_frames_changed"] = bled, changed
+        print("\nEdge bleeding: rendered depth with the tool's depth spread k px into the tissue (macro rows)")
+        print(format_table(bled))
+        print("frames (all ten sessions) whose signal the bleeding test changed: "
+              + ", ".join(f"{changed[k]} at {k} px" for k in widths))
+    (directory / "results.json").write_text(json.dumps(results, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

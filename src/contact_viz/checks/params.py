@@ -1,0 +1,79 @@
+"""Thresholds of the diagnostics (frame and session checks), one frozen, typed config."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from contact_viz.params import check_fields, checked
+
+__all__ = ["DiagnosticParams"]
+
+
+@dataclass(frozen=True)
+class DiagnosticParams:
+    """Thresholds of the per-frame and per-session checks (contact_viz.checks; docs/diagnostics.md).
+
+    Lengths in pixels are given as fractions of the image width (``*_frac``) so that one setting
+    fits every resolution; depths in metres with a relative part (fraction of the tool's depth).
+    A check fires when its measured value is strictly beyond its threshold.
+    """
+
+    # ---- mask ----
+    min_tool_area_px: int = checked(1, ge=1)  # fewer tool-mask pixels than this = no tool, px
+    # an empty mask is a dropout if a tool was seen within this many frames, frames
+    dropout_memory_frames: int = checked(30, ge=1)
+    # ... unless the last mask touched the border and was below this share of the typical area (it left), 0-1
+    exit_area_fraction: float = checked(0.35, ge=0, le=1)
+    # relative mask-area change that fires, |dA| / max(A_t, A_prev), 0-1 (not when a mask touches the border)
+    mask_area_jump: float = checked(0.5, gt=0, le=1)
+    # an extra mask blob counts from this share of the main blob's area, 0-1
+    min_blob_area_fraction: float = checked(0.008, ge=0, le=1)
+    # ... when farther than this from the main blob (fragments nearer are the same tool), x image width
+    blob_gap_frac: float = checked(0.01, gt=0, le=1)
+    min_edge_support: float = checked(0.5, ge=0, le=1)  # share of the mask contour on an image edge below which it fires, 0-1
+    image_edge_grey: float = checked(8.0, gt=0)  # an image edge: grey gradient (Sobel / 8) at least this, grey levels/px
+    # ---- depth against the mask ----
+    # share of the mask's inner rim whose depth lies behind the tool that fires, 0-1
+    max_inside_far_fraction: float = checked(0.008, ge=0, le=1)
+    # share of the ring just outside the mask at the tool's depth that fires, 0-1
+    max_outside_tool_fraction: float = checked(0.3, ge=0, le=1)
+    ring_frac_lo: float = checked(0.006, gt=0, le=1)  # that ring starts this far outside the mask, x image width
+    ring_frac_hi: float = checked(0.012, gt=0, le=1)  # ... and ends this far out, x image width
+    same_depth_m: float = checked(0.002, gt=0)  # "at the tool's depth": within this of the nearby tool depth, m ...
+    same_depth_rel: float = checked(0.02, gt=0)  # ... or this share of it, whichever is larger, fraction
+    far_depth_m: float = checked(0.004, gt=0)  # "behind the tool": farther than the nearby tool depth by this, m ...
+    far_depth_rel: float = checked(0.05, gt=0)  # ... or this share of it, whichever is larger, fraction
+    max_hole_fraction: float = checked(0.4, ge=0, le=1)  # share of invalid depth on and around the tool that fires, 0-1
+    # ---- scale and stereo ----
+    # the instrument's shaft diameter (--tool-diameter-mm; da Vinci 8 mm, many others 5 mm), mm
+    tool_diameter_mm: float = checked(8.0, gt=0)
+    # physical shaft width / diameter above this (or below its inverse) fires, ratio
+    max_width_ratio: float = checked(1.45, gt=1)
+    # stereo residual at the depth's disparity / at a 15% different one above this fires, ratio
+    max_residual_ratio: float = checked(1.1, gt=0)
+    # ---- time ----
+    # the image changed: mean |grey difference| of a 32x18 thumbnail above this, grey levels
+    image_change_grey: float = checked(0.5, ge=0)
+    distance_jump_m: float = checked(0.005, gt=0)  # change of the patch distance between frames that fires, m ...
+    # ... plus this share of the smaller |distance| (far away it is noisy and harmless), fraction
+    distance_jump_rel: float = checked(0.2, ge=0)
+    # ... unless the patch centre moved more than this (another part of the tool), x image width
+    patch_move_frac: float = checked(0.01, ge=0, le=1)
+    pad_frac: float = checked(0.05, gt=0, le=1)  # margin around the tool's box the frame checks look at, x image width
+    # ---- session ----
+    frame_gap_factor: float = checked(1.8, gt=1)  # a frame interval longer than this x the median is a gap, ratio
+    max_lag_s: float = checked(0.5, gt=0)  # force-to-signal lags searched, +- s
+    force_level: float = checked(0.1, gt=0, lt=1)  # force "on" above this share of its range (20th-95th percentile), 0-1
+    signal_level: float = checked(0.85, gt=0, lt=1)  # signal "on" above this share of its range (5th-95th pct.), 0-1
+    min_lag_frames: int = checked(3, ge=1)  # a force lag of at least this many frames fires, frames
+    min_lag_correlation: float = checked(0.3, ge=-1, le=1)  # ... when its correlation peak is at least this, -1..1
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        if not self.ring_frac_lo < self.ring_frac_hi:
+            raise ValueError(f"DiagnosticParams needs ring_frac_lo < ring_frac_hi, got {self.ring_frac_lo!r}, "
+                             f"{self.ring_frac_hi!r}")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)

@@ -1,0 +1,250 @@
+"""`contact-viz check`: the debugger's diagnostics over whole sessions, without Rerun.
+
+:func:`check_session` reads every frame (mask, whole depth map, grey left and right images),
+computes its patch and the frame measurements (:mod:`contact_viz.checks.frame`), spread over
+``processes`` processes, then runs the checks in frame order (:class:`FrameChecker`, the same
+object the viewer uses) and the session checks (force lag, frame times). The result is a
+:class:`CheckReport`: which checks fired on which frame ranges.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from contact_viz import __version__
+from contact_viz.checks.frame import FrameMeasures, measure_frame
+from contact_viz.checks.params import DiagnosticParams
+from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, FrameChecker, PatchNumbers, fired_ranges
+from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
+from contact_viz.errors import SessionError
+from contact_viz.geometry.patch import compute_patch
+from contact_viz.io.session import BadFrame, Session, open_session
+from contact_viz.params import PatchParams
+
+__all__ = ["CheckReport", "FrameRecord", "check_session", "load_grey", "measure_session_frame"]
+
+CHUNK_FRAMES = 8  # frames a process claims at a time, frames
+
+
+def load_grey(session: Session, side: str, index: int) -> np.ndarray | None:
+    """Frame ``index``'s ``side`` image as (H, W) uint8 grey (rectified like the session), or None
+    when it is missing or unreadable (the image checks are then skipped for that frame)."""
+    path = session.image_path(side, index)
+    if path is None:
+        return None
+    if session.rectification is None:
+        grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if grey is None or grey.shape != tuple(session.image_size):
+            return None
+        return grey
+    frame = session.load_frame(index, layers=(side,))
+    rgb = None if isinstance(frame, BadFrame) else (frame.left_rgb if side == "left" else frame.right_rgb)
+    return None if rgb is None else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame as the checks see it: its measurements and patch numbers, or why it could not be read."""
+
+    index: int
+    measures: FrameMeasures | None  # None = bad frame
+    patch: PatchNumbers | None
+    signal: float  # -log10(max(|d|, eps)), NaN = no patch
+    bad_reason: str | None = None
+
+
+def measure_session_frame(session: Session, index: int, patch_params: PatchParams, params: DiagnosticParams,
+                          evidence: bool = False) -> FrameRecord:
+    """Read frame ``index`` of ``session`` and measure it (patch + frame checks' measurements)."""
+    frame = session.load_frame(index, layers=("mask", "depth"))
+    if isinstance(frame, BadFrame):
+        return FrameRecord(index, None, None, math.nan, frame.reason)
+    return measure_loaded_frame(session, frame, compute_patch(frame.depth_m, frame.tool_mask, patch_params),
+                                load_grey(session, "left", index), load_grey(session, "right", index), params,
+                                evidence)
+
+
+def measure_loaded_frame(session: Session, frame, patch, left_grey, right_grey, params: DiagnosticParams,
+                         evidence: bool = False) -> FrameRecord:
+    """The :class:`FrameRecord` of a decoded frame and its patch (shared with the viewer)."""
+    K = session.calibration.K
+    measures = measure_frame(frame.tool_mask, frame.depth_m, left_grey, right_grey, float(K[0][0]),
+                             float(session.calibration.baseline_m), params, evidence=evidence)
+    numbers = PatchNumbers(float(patch.distance_m), None if patch.center_xy is None else
+                           (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason)
+    return FrameRecord(frame.index, measures, numbers, float(patch.signal))
+
+
+@dataclass(frozen=True)
+class _MeasureTask:
+    """Frame records of positions lo..hi-1 (a contact_viz.pipeline.workers.ChunkTask)."""
+
+    session: Session
+    patch_params: PatchParams
+    params: DiagnosticParams
+
+    def __call__(self, lo: int, hi: int) -> list[FrameRecord]:
+        return [measure_session_frame(self.session, i, self.patch_params, self.params) for i in range(lo, hi)]
+
+
+@dataclass
+class CheckReport:
+    """What `contact-viz check` found in one session."""
+
+    session: str  # session name
+    path: str  # session directory
+    n_frames: int  # frames in the session
+    fired: dict[str, list[tuple[int, int]]]  # check code -> (first_frame, last_frame) ranges it fired on
+    counts: dict[str, int]  # check code -> frames it fired on
+    force_lag: ForceLag | None  # the force-to-signal lag estimate (None = no force)
+    params: DiagnosticParams
+    elapsed_s: float  # wall time, s
+    messages: dict[str, str] = field(default_factory=dict)  # check code -> first message (with the likely cause)
+
+    @property
+    def flagged_frames(self) -> int:
+        """Frames on which any check fired."""
+        frames = set()
+        for ranges in self.fired.values():
+            for a, b in ranges:
+                frames.update(range(a, b + 1))
+        return len(frames)
+
+    def to_dict(self) -> dict:
+        lag = None if self.force_lag is None else {
+            "lag_frames": self.force_lag.lag_frames, "lag_s": round(self.force_lag.lag_s, 4),
+            "correlation": round(self.force_lag.correlation, 4),
+            "zero_lag_correlation": None if math.isnan(self.force_lag.zero_lag_correlation)
+            else round(self.force_lag.zero_lag_correlation, 4),
+            "fired": self.force_lag.fired}
+        return {
+            "session": self.session, "path": self.path, "n_frames": self.n_frames,
+            "flagged_frames": self.flagged_frames,
+            "checks": {code: {"frames": self.counts.get(code, 0), "ranges": [list(r) for r in self.fired.get(code, [])],
+                              "measures": (CHECKS.get(code) or SESSION_CHECKS[code])[0],
+                              "likely_cause": (CHECKS.get(code) or SESSION_CHECKS[code])[1],
+                              **({"first_message": self.messages[code]} if code in self.messages else {})}
+                       for code in (*CHECKS, *SESSION_CHECKS)},
+            "force_lag": lag,
+            "params": self.params.to_dict(),
+            "contact_viz_version": __version__,
+            "elapsed_s": round(self.elapsed_s, 3),
+        }
+
+
+def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_dir=None, processes: int = 1,
+                  patch_params: PatchParams | None = None, object_id: int | None = None) -> CheckReport:
+    """Run every check on the session at ``session_dir``; see :class:`CheckReport`.
+
+    ``cache_dir``: where SGBM depth is cached for sessions without depth (as everywhere).
+    ``processes`` counts this one (1 = no worker process). Raises SessionError on a session-wide
+    problem; an unreadable frame is a ``bad_frame`` and the run goes on.
+    """
+    from contact_viz.pipeline.workers import run_chunks
+
+    started = time.perf_counter()
+    params = params or DiagnosticParams()
+    patch_params = patch_params or PatchParams()
+    session = open_session(session_dir, cache_dir=cache_dir, object_id=object_id)
+    task = _MeasureTask(session, patch_params, params)
+    n = len(session)
+    if processes == 1:
+        records = task(0, n)
+    else:
+        records = run_chunks(task, n, chunk_size=CHUNK_FRAMES, processes=processes)
+    frames = fired_frames(records, params, session.image_size[1])
+    signal = np.array([r.signal for r in records], dtype=np.float64)
+    suspect = np.zeros(n, bool)
+    for idx, _ in frames.values():
+        suspect[idx] = True
+    lag = force_lag(session.force_n, signal, session.timestamps_s, params, suspect=suspect)
+    if lag is not None and lag.fired:
+        frames["force_lag"] = (list(range(n)), f"force lags the signal by {lag.lag_frames} frames "
+                                               f"({lag.lag_s:+.3f} s; correlation {lag.correlation:.2f} vs "
+                                               f"{lag.zero_lag_correlation:.2f} at 0)")
+    gaps = frame_time_problems(session.timestamps_s, params)
+    if gaps:
+        frames["frame_times"] = (gaps, f"{len(gaps)} frame(s) with a time step <= 0 or a gap")
+    return CheckReport(
+        session=session.name, path=str(session.root), n_frames=n,
+        fired={code: fired_ranges(idx) for code, (idx, _) in frames.items()},
+        counts={code: len(idx) for code, (idx, _) in frames.items()},
+        force_lag=lag, params=params, elapsed_s=time.perf_counter() - started,
+        messages={code: msg for code, (_, msg) in frames.items()},
+    )
+
+
+def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_width: int) -> dict:
+    """Run the frame checks over ``records`` in order: code -> (frame indices, first message)."""
+    checker = FrameChecker(params, image_width)
+    out: dict[str, tuple[list[int], str]] = {}
+    for record in records:
+        if record.measures is None:
+            out.setdefault("bad_frame", ([], f"frame {record.index}: {record.bad_reason}"))[0].append(record.index)
+            checker.reset_previous()
+            continue
+        fired, _ = checker.check(record.index, record.measures, record.patch)
+        for diagnostic in fired:
+            out.setdefault(diagnostic.code, ([], f"frame {diagnostic.index}: {diagnostic.message}"))[0].append(
+                diagnostic.index)
+    return out
+
+
+def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
+    """The per-session table `contact-viz check` prints: one line per check that fired."""
+    name = report.session if Path(report.path).name == report.session else f"{report.session} ({report.path})"
+    head = (f"{name}: {report.n_frames} frames, {report.flagged_frames} flagged "
+            f"({report.elapsed_s:.1f} s)")
+    lines = [head]
+    fired = [c for c in (*CHECKS, *SESSION_CHECKS) if report.counts.get(c)]
+    if not fired:
+        lines.append("  no check fired")
+        return lines
+    width = max(len(c) for c in fired)
+    lines.append(f"  {'check':{width}s}  frames  ranges                          likely cause")
+    for code in fired:
+        ranges = report.fired[code]
+        text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in ranges[:max_ranges])
+        if len(ranges) > max_ranges:
+            text += f", ... ({len(ranges)} ranges)"
+        if code == "force_lag" and report.force_lag is not None:
+            text = f"all ({report.force_lag.lag_frames:+d} frames, {report.force_lag.lag_s:+.3f} s)"
+        cause = (CHECKS.get(code) or SESSION_CHECKS[code])[1]
+        lines.append(f"  {code:{width}s}  {report.counts[code]:6d}  {text:30s}  {cause}")
+    return lines
+
+
+def run_check(session_dirs, *, params: DiagnosticParams | None = None, cache_dir=None, processes: int = 1,
+              json_path=None, on_report=None, on_error=None) -> tuple[list[CheckReport], list[str]]:
+    """`contact-viz check`: :func:`check_session` on each of ``session_dirs`` in turn.
+
+    ``on_report(report)`` / ``on_error(message)`` are called as each session finishes (the CLI prints
+    there). A session that cannot be opened is an error line naming it; the others go on. With
+    ``json_path`` the reports (``{"sessions": [report.to_dict(), ...], "errors": [...]}``) are written
+    there atomically at the end. Returns (reports, errors).
+    """
+    from contact_viz.io.jsonfile import write_json
+
+    reports: list[CheckReport] = []
+    errors: list[str] = []
+    for session_dir in session_dirs:
+        try:
+            report = check_session(session_dir, params=params, cache_dir=cache_dir, processes=processes)
+        except (SessionError, ValueError) as exc:
+            errors.append(str(exc))
+            if on_error is not None:
+                on_error(str(exc))
+            continue
+        reports.append(report)
+        if on_report is not None:
+            on_report(report)
+    if json_path is not None:
+        write_json(json_path, {"sessions": [r.to_dict() for r in reports], "errors": errors,
+                               "contact_viz_version": __version__})
+    return reports, errors

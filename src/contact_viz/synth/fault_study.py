@@ -1,0 +1,224 @@
+"""Measure the diagnostics: inject each failure into synthetic sessions and count what `check` flags.
+
+:func:`inject_and_check` puts one failure of a kind into a session twice, once while the tool
+approaches and once while it is in contact (windows of random length and position, severity drawn
+from :data:`SEVERITY`, all from ``seed``), runs :func:`contact_viz.pipeline.check.check_session` on
+the copy and returns per phase the injected frames and those flagged by any check.
+:func:`detection_table` pools the outcomes per kind and phase. Used by
+tests/test_failure_injection.py and benchmarks/bench_diagnostics.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from contact_viz.checks.params import DiagnosticParams
+from contact_viz.pipeline.check import CheckReport, check_session
+from contact_viz.synth.faults import FAULT_KINDS, inject_fault
+
+__all__ = ["InjectionOutcome", "inject_and_check_job", "make_session_job", "SEVERITY", "detection_table", "flagged_frames", "inject_and_check", "plan_windows",
+           "read_truth_contact"]
+
+# Severity drawn per injection (see contact_viz.synth.faults), for a 320 px wide image: lengths scale with width.
+SEVERITY: dict[str, tuple] = {
+    "mask_dropout": ("fixed", 0.0),
+    "mask_drift": ("px", 4.0, 9.0),  # mask shifted by 4-9 px at 320 px width (a lagging mask)
+    "mask_bleed": ("px", 5.0, 9.0),  # lobe radius
+    "second_object": ("px", 4.0, 8.0),  # blob radius
+    "depth_holes": ("uniform", 0.5, 0.9),  # share of tool + band invalid
+    "edge_bleeding": ("px", 3.0, 6.0),  # tool depth smeared this far onto tissue
+    "depth_scale": ("choice", 0.7, 0.8, 1.25, 1.4, 0.0),  # factor; 0 = disparity read as depth
+    "depth_misregistration": ("px", 4.0, 8.0),  # depth shifted
+    "force_offset": ("frames", 4, 8),  # +- frames
+    "frozen_depth": ("fixed", 0.0),
+}
+REFERENCE_WIDTH_PX = 320  # SEVERITY lengths are for this image width, px
+
+
+@dataclass(frozen=True)
+class InjectionOutcome:
+    """One injected session: per phase ("approach", "contact") the injected and the flagged frames."""
+
+    kind: str
+    session: str
+    severity: float
+    injected: dict[str, tuple[int, ...]]
+    flagged: dict[str, tuple[int, ...]]  # injected frames on which any check fired
+    checks: dict[str, int]  # check code -> injected frames it fired on
+    report: CheckReport
+
+
+def read_truth_contact(session_dir: str | Path) -> np.ndarray:
+    """truth.csv's contact column (0/1 per frame) of a synthetic session."""
+    with (Path(session_dir) / "truth.csv").open(newline="") as handle:
+        return np.array([int(row["contact"]) for row in csv.DictReader(handle)], dtype=np.int8)
+
+
+def plan_windows(contact: np.ndarray, rng: np.random.Generator, visible: np.ndarray | None = None
+                 ) -> dict[str, tuple[int, ...]]:
+    """An approach window (4-10 frames, no contact, ending >= 3 frames before the first contact) and a
+    contact window (3-8 frames inside the longest contact run), at random positions.
+
+    ``visible`` (bool per frame, default all): the tool is in view; the approach window starts at least
+    2 frames after it first is (a failure while no tool is in view is no failure)."""
+    contact = np.asarray(contact, dtype=bool)
+    first = int(np.argmax(contact)) if contact.any() else contact.size
+    seen = 0 if visible is None or not np.any(visible) else int(np.argmax(np.asarray(visible, dtype=bool)))
+    length = int(rng.integers(4, 11))
+    last_start = first - 3 - length
+    if last_start < seen + 2:
+        raise ValueError("session too short before its first contact for an approach window")
+    a0 = int(rng.integers(seen + 2, last_start + 1))
+    runs, start = [], None
+    for i, c in enumerate(np.append(contact, False)):
+        if c and start is None:
+            start = i
+        elif not c and start is not None:
+            runs.append((start, i))
+            start = None
+    if not runs:
+        raise ValueError("session has no contact frames")
+    r0, r1 = max(runs, key=lambda r: r[1] - r[0])
+    c_len = int(rng.integers(3, max(4, min(9, r1 - r0))))
+    c_len = min(c_len, r1 - r0)
+    c0 = int(rng.integers(r0, r1 - c_len + 1))
+    return {"approach": tuple(range(a0, a0 + length)), "contact": tuple(range(c0, c0 + c_len))}
+
+
+def _severity(kind: str, rng: np.random.Generator, width: int) -> float:
+    spec = SEVERITY[kind]
+    if spec[0] == "fixed":
+        return float(spec[1])
+    if spec[0] == "px":
+        return float(rng.uniform(spec[1], spec[2]) * width / REFERENCE_WIDTH_PX)
+    if spec[0] == "uniform":
+        return float(rng.uniform(spec[1], spec[2]))
+    if spec[0] == "choice":
+        return float(rng.choice(spec[1:]))
+    if spec[0] == "frames":
+        return float(rng.integers(spec[1], spec[2] + 1) * rng.choice([-1, 1]))
+    raise ValueError(spec)
+
+
+def flagged_frames(report: CheckReport, ignore: Iterable[str] = ()) -> set[int]:
+    """Frames on which any check of ``report`` fired (except those in ``ignore``)."""
+    out: set[int] = set()
+    for code, ranges in report.fired.items():
+        if code in ignore:
+            continue
+        for a, b in ranges:
+            out.update(range(a, b + 1))
+    return out
+
+
+def inject_and_check(session_dir: str | Path, work_dir: str | Path, kind: str, seed: int,
+                     params: DiagnosticParams | None = None, keep: bool = False) -> InjectionOutcome:
+    """Inject ``kind`` into ``session_dir`` in an approach and a contact window, check the copy."""
+    session_dir = Path(session_dir)
+    rng = np.random.default_rng(seed)
+    windows = plan_windows(read_truth_contact(session_dir), rng, _tool_visible(session_dir))
+    width = _image_width(session_dir)
+    severity = _severity(kind, rng, width)
+    dst = Path(work_dir) / f"{session_dir.name}_{kind}_{seed}"
+    if dst.exists():
+        shutil.rmtree(dst)
+    frames = windows["approach"] + windows["contact"]
+    fault = inject_fault(session_dir, dst, kind, frames, severity, seed=seed)
+    try:
+        report = check_session(dst, params=params)
+    finally:
+        if not keep:
+            shutil.rmtree(dst, ignore_errors=True)
+    if kind == "force_offset":  # the whole session is shifted: every frame of each phase is injected
+        contact = read_truth_contact(session_dir).astype(bool)
+        windows = {"approach": tuple(int(i) for i in np.nonzero(~contact)[0]),
+                   "contact": tuple(int(i) for i in np.nonzero(contact)[0])}
+    # a frame failure counts only where a frame check fired (a session check firing on every frame would
+    # flag them all); the force offset only where the session check did
+    from contact_viz.checks.rules import SESSION_CHECKS
+
+    frame_level = kind != "force_offset"
+    flagged = flagged_frames(report, ignore=SESSION_CHECKS if frame_level else ())
+    if not frame_level:
+        flagged = flagged_frames(report, ignore=[c for c in report.fired if c != "force_lag"])
+    injected_all = set(windows["approach"]) | set(windows["contact"])
+    checks = {}
+    for code, ranges in report.fired.items():
+        hit = sum(1 for a, b in ranges for i in range(a, b + 1) if i in injected_all)
+        if hit:
+            checks[code] = hit
+    return InjectionOutcome(kind, session_dir.name, fault.severity, windows,
+                            {phase: tuple(i for i in idx if i in flagged) for phase, idx in windows.items()},
+                            checks, report)
+
+
+def _tool_visible(session_dir: Path) -> np.ndarray:
+    """Per frame: the tool mask has pixels (masks/ in frame order)."""
+    from PIL import Image
+
+    masks = sorted((p for p in (session_dir / "masks").iterdir() if not p.name.startswith(".")),
+                   key=lambda p: int(p.stem))
+    out = []
+    for path in masks:
+        with Image.open(path) as image:
+            out.append(bool(np.asarray(image).any()))
+    return np.array(out, dtype=bool)
+
+
+def _image_width(session_dir: Path) -> int:
+    from PIL import Image
+
+    left = sorted(p for p in (session_dir / "left").iterdir() if not p.name.startswith("."))[0]
+    with Image.open(left) as image:
+        return image.size[0]
+
+
+def detected(outcome: InjectionOutcome, phase: str, min_share: float = 0.9, onset_frames: int = 2) -> bool:
+    """The target per injection and phase: flagged on >= ``min_share`` of the injected frames, or a
+    flag within ``onset_frames`` of the window's first frame."""
+    injected, flagged = outcome.injected[phase], outcome.flagged[phase]
+    if not injected:
+        return True
+    if len(flagged) >= min_share * len(injected):
+        return True
+    return any(i - injected[0] <= onset_frames for i in flagged) if outcome.kind != "force_offset" else False
+
+
+def detection_table(outcomes: list[InjectionOutcome]) -> list[dict]:
+    """Per kind: flagged / injected frames and injections meeting the target, in approach and in contact."""
+    rows = []
+    for kind in FAULT_KINDS:
+        mine = [o for o in outcomes if o.kind == kind]
+        if not mine:
+            continue
+        row = {"kind": kind, "injections": len(mine)}
+        for phase in ("approach", "contact"):
+            row[f"{phase}_flagged"] = sum(len(o.flagged[phase]) for o in mine)
+            row[f"{phase}_injected"] = sum(len(o.injected[phase]) for o in mine)
+            row[f"{phase}_detected"] = sum(detected(o, phase) for o in mine)
+        checks: dict[str, int] = {}
+        for o in mine:
+            for code, n in o.checks.items():
+                checks[code] = checks.get(code, 0) + n
+        row["checks"] = ", ".join(f"{c} {n}" for c, n in sorted(checks.items(), key=lambda kv: -kv[1])[:3])
+        rows.append(row)
+    return rows
+
+
+def make_session_job(args) -> Path:
+    """``generate_session(out, SynthParams(phantom, frames, seed, width, height))`` from one tuple (for process pools)."""
+    from contact_viz.synth import SynthParams, generate_session
+
+    out, phantom, seed, frames, width, height = args
+    return generate_session(out, SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height))
+
+
+def inject_and_check_job(args) -> InjectionOutcome:
+    """:func:`inject_and_check` from one (session_dir, work_dir, kind, seed) tuple (for process pools)."""
+    return inject_and_check(*args)

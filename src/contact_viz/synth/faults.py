@@ -1,0 +1,252 @@
+"""Failure injection: a copy of a session with one realistic failure put into chosen frames.
+
+Used to measure the diagnostics (tests/test_failure_injection.py, benchmarks/bench_diagnostics.py):
+each of :data:`FAULT_KINDS` is what really goes wrong with SAM2 masks, learned stereo depth and
+recorders. :func:`inject_fault` never touches the source session: unchanged files are hard-linked
+(or copied) into the new session, changed ones written fresh there.
+
+Severity (``Fault.severity``) by kind, in the session's own pixels where it is a length:
+
+* ``mask_dropout``: unused (the mask is emptied).
+* ``mask_drift``: shift of the mask, px (mostly across the tool's axis, so it leaves the tool).
+* ``mask_bleed``: radius of a lobe of tissue added to the mask at its edge, px.
+* ``second_object``: radius of an extra blob (another instrument's tip, a wrong object), px.
+* ``depth_holes``: share of the tool and the band around it (up to 2 shaft widths) made invalid, 0-1.
+* ``edge_bleeding``: how far the tool's depth is smeared past its silhouette onto tissue, px.
+* ``depth_scale``: factor the depth is multiplied by (wrong baseline / focal length); 0 = disparity
+  read as depth (depth = fx * baseline / depth, in px read as m).
+* ``depth_misregistration``: shift of the depth map against image and mask, px.
+* ``force_offset``: shift of the force stream, frames (force of frame i is that of frame i - k): the
+  whole session.
+* ``frozen_depth``: unused (the depth of the frame before the first injected frame is repeated).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+__all__ = ["FAULT_KINDS", "Fault", "inject_fault", "read_truth_phases"]
+
+FAULT_KINDS = (
+    "mask_dropout", "mask_drift", "mask_bleed", "second_object", "depth_holes", "edge_bleeding",
+    "depth_scale", "depth_misregistration", "force_offset", "frozen_depth",
+)
+MASK_FAULTS = ("mask_dropout", "mask_drift", "mask_bleed", "second_object")
+DEPTH_FAULTS = ("depth_holes", "edge_bleeding", "depth_scale", "depth_misregistration", "frozen_depth")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One injected failure: its kind, the frames it covers and its size (see the module docstring)."""
+
+    kind: str
+    frames: tuple[int, ...]  # injected frame indices (every frame for force_offset)
+    severity: float  # kind-specific size, see the module docstring
+
+
+def read_truth_phases(session_dir: str | Path) -> list[str]:
+    """The ``phase`` column of a synthetic session's truth.csv, one entry per frame."""
+    with (Path(session_dir) / "truth.csv").open(newline="") as handle:
+        return [row["phase"] for row in csv.DictReader(handle)]
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    for path in src.rglob("*"):
+        target = dst / path.relative_to(src)
+        if path.is_dir():
+            target.mkdir(parents=True, exist_ok=True)
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(path, target)
+        except OSError:
+            shutil.copy2(path, target)
+
+
+def _replace(path: Path, write) -> None:
+    """Write a new file at ``path`` (breaking a hard link, never writing through it)."""
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _read_mask(path: Path) -> tuple[np.ndarray, Image.Image]:
+    image = Image.open(path)
+    image.load()
+    return np.asarray(image) > 0, image
+
+
+def _write_mask(path: Path, mask: np.ndarray, like: Image.Image) -> None:
+    out = Image.fromarray(mask.astype(np.uint8) * (1 if like.mode == "P" else 255), mode="L")
+    if like.mode == "P":
+        out = out.convert("P")
+        out.putpalette(like.getpalette())
+    _replace(path, lambda tmp: out.save(tmp, format="PNG"))
+
+
+def _write_depth(path: Path, depth: np.ndarray) -> None:
+    _replace(path, lambda tmp: np.save(tmp, depth.astype(np.float32)))
+
+
+def _shift(array: np.ndarray, dx: int, dy: int, fill) -> np.ndarray:
+    out = np.full_like(array, fill)
+    h, w = array.shape[:2]
+    ys, yd = (slice(0, h - dy), slice(dy, h)) if dy >= 0 else (slice(-dy, h), slice(0, h + dy))
+    xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
+    out[yd, xd] = array[ys, xs]
+    return out
+
+
+def _axis(mask: np.ndarray) -> np.ndarray:
+    """Unit vector (x, y) of the mask's main axis (PCA of its pixels)."""
+    ys, xs = np.nonzero(mask)
+    if xs.size < 3:
+        return np.array([1.0, 0.0])
+    cov = np.cov(np.stack([xs, ys]).astype(np.float64))
+    values, vectors = np.linalg.eigh(cov)
+    return vectors[:, int(np.argmax(values))]
+
+
+def _disc(shape, centre_xy, radius_px: float, aspect: float = 1.0, angle_deg: float = 0.0) -> np.ndarray:
+    out = np.zeros(shape, np.uint8)
+    axes = (max(1, round(radius_px)), max(1, round(radius_px * aspect)))
+    cv2.ellipse(out, (int(round(centre_xy[0])), int(round(centre_xy[1]))), axes, angle_deg, 0, 360, 1, -1)
+    return out > 0
+
+
+def _mask_fault(kind: str, mask: np.ndarray, severity: float, rng: np.random.Generator) -> np.ndarray:
+    h, w = mask.shape
+    if kind == "mask_dropout":
+        return np.zeros_like(mask)
+    if kind == "mask_drift":
+        across = _axis(mask)[::-1] * np.array([-1.0, 1.0])  # perpendicular to the axis
+        angle = rng.uniform(-math.pi / 4, math.pi / 4) + (math.pi if rng.random() < 0.5 else 0.0)
+        c, s = math.cos(angle), math.sin(angle)
+        direction = np.array([c * across[0] - s * across[1], s * across[0] + c * across[1]])
+        dx, dy = (int(round(v)) for v in severity * direction)
+        return _shift(mask, dx, dy, False)
+    if kind == "mask_bleed":
+        edge = mask & ~cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        margin = int(severity) + 2
+        edge[:margin], edge[-margin:], edge[:, :margin], edge[:, -margin:] = False, False, False, False
+        ys, xs = np.nonzero(edge)
+        if xs.size == 0:
+            return mask
+        k = int(rng.integers(xs.size))
+        dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
+        # centre of the lobe: outside the tool, about 0.6 radius beyond the edge point, away from the mask
+        gy, gx = np.gradient(dist)
+        normal = np.array([gx[ys[k], xs[k]], gy[ys[k], xs[k]]])
+        normal = normal / (np.linalg.norm(normal) or 1.0)
+        centre = np.array([xs[k], ys[k]]) + 0.6 * severity * normal
+        return mask | _disc(mask.shape, centre, severity, rng.uniform(0.6, 1.0), rng.uniform(0, 180))
+    if kind == "second_object":
+        dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
+        margin = int(severity) + 3
+        ok = dist > 2.5 * severity + 6
+        ok[:margin], ok[-margin:], ok[:, :margin], ok[:, -margin:] = False, False, False, False
+        ys, xs = np.nonzero(ok)
+        if xs.size == 0:
+            return mask
+        k = int(rng.integers(xs.size))
+        return mask | _disc(mask.shape, (xs[k], ys[k]), severity, rng.uniform(0.4, 1.0), rng.uniform(0, 180))
+    raise ValueError(f"not a mask fault: {kind!r}")
+
+
+def _depth_fault(kind: str, depth: np.ndarray, mask: np.ndarray, severity: float, fx_b: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    depth = depth.copy()
+    if kind == "depth_holes":
+        inside = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
+        width = 2 * float(cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5).max())
+        region = inside <= max(2.0 * width, 6.0)
+        noise = cv2.GaussianBlur(rng.standard_normal(depth.shape).astype(np.float32), (0, 0), 3)
+        cut = np.quantile(noise[region], 1.0 - severity) if region.any() else np.inf
+        depth[region & (noise >= cut)] = 0.0
+        return depth
+    if kind == "edge_bleeding":
+        reach = int(round(severity))
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
+        ring = (cv2.dilate(mask.astype(np.uint8), kernel) > 0) & ~mask
+        tool = np.where(mask & (depth > 0), depth, np.float32(np.inf)).astype(np.float32)
+        spread = cv2.erode(tool, kernel)
+        take = ring & np.isfinite(spread)
+        depth[take] = spread[take]
+        return depth
+    if kind == "depth_scale":
+        valid = depth > 0
+        if severity == 0:  # disparity (px) read as depth (m)
+            depth[valid] = fx_b / depth[valid]
+        else:
+            depth[valid] *= severity
+        return depth
+    if kind == "depth_misregistration":
+        angle = rng.uniform(0, 2 * math.pi)
+        dx, dy = int(round(severity * math.cos(angle))), int(round(severity * math.sin(angle)))
+        if dx == 0 and dy == 0:
+            dx = int(round(severity))
+        return _shift(depth, dx, dy, np.float32(0.0))
+    raise ValueError(f"not a depth fault: {kind!r}")
+
+
+def inject_fault(src: str | Path, dst: str | Path, kind: str, frames, severity: float = 0.0,
+                 seed: int = 0) -> Fault:
+    """Copy the session ``src`` to ``dst`` (which must not exist) with ``kind`` injected into ``frames``.
+
+    ``frames``: frame indices (positions in the sorted stems). ``severity``: see the module docstring.
+    Returns the :class:`Fault`; for ``force_offset`` its frames are all frames of the session.
+    """
+    if kind not in FAULT_KINDS:
+        raise ValueError(f"kind must be one of {FAULT_KINDS}, got {kind!r}")
+    src, dst = Path(src), Path(dst)
+    if dst.exists():
+        raise ValueError(f"{dst}: already exists")
+    stems = sorted((p.stem for p in (src / "left").iterdir() if not p.name.startswith(".")), key=int)
+    frames = tuple(sorted(int(i) for i in frames))
+    rng = np.random.default_rng(seed)
+    _link_tree(src, dst)
+    K_line, baseline_line = (src / "K.txt").read_text().splitlines()[:2]
+    fx_b = float(K_line.split()[0]) * float(baseline_line)
+    if kind == "force_offset":
+        shift = int(round(severity))
+        with (src / "force.csv").open(newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        by_frame = {int(row["frame"]): row for row in rows}  # force.csv names frames by number
+        out_rows = []
+        for i, stem in enumerate(stems):
+            j = min(max(i - shift, 0), len(stems) - 1)
+            source = by_frame[int(stems[j])]
+            out_rows.append({**source, "frame": by_frame[int(stem)]["frame"]})
+        fields = list(rows[0].keys())
+
+        def write(tmp: Path) -> None:
+            with tmp.open("w", newline="") as handle:
+                writer = csv.DictWriter(handle, fieldnames=fields)
+                writer.writeheader()
+                writer.writerows(out_rows)
+
+        _replace(dst / "force.csv", write)
+        return Fault(kind, tuple(range(len(stems))), float(shift))
+    if kind == "frozen_depth":
+        base = max(frames[0] - 1, 0)
+        frozen = np.load(src / "depth" / f"{stems[base]}.npy")
+        for i in frames:
+            _write_depth(dst / "depth" / f"{stems[i]}.npy", frozen)
+        return Fault(kind, frames, severity)
+    for i in frames:
+        mask, like = _read_mask(src / "masks" / f"{stems[i]}.png")
+        if kind in MASK_FAULTS:
+            _write_mask(dst / "masks" / f"{stems[i]}.png", _mask_fault(kind, mask, severity, rng), like)
+        else:
+            depth = np.load(src / "depth" / f"{stems[i]}.npy")
+            _write_depth(dst / "depth" / f"{stems[i]}.npy", _depth_fault(kind, depth, mask, severity, fx_b, rng))
+    return Fault(kind, frames, severity)
