@@ -17,13 +17,20 @@ before any start-up or output.
 libraries (`contact-viz --help`, numpy, PIL), so the session's files come from disk while the
 code does not: the situation of a session recorded earlier, or larger than memory.
 
+--compare SRC [SRC ...] instead A/B-tests versions of the package: the extract command of each
+source tree on the longer session, one invocation of each in turn, --repeats rounds (how the
+home-made code was weighed against library calls, issue 11).
+
 Run: .venv/bin/python benchmarks/bench_extract.py [--frames 300] [--loops 4] [--repeats 3] [--cold]
+     .venv/bin/python benchmarks/bench_extract.py --compare A/src B/src@B/.venv/bin/python [--repeats 5]
+         [--extract-options '--processes 1']
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -45,10 +52,43 @@ def decode_once(session: Path) -> float:
     return time.perf_counter() - t0
 
 
-def run_extract(session: Path, out: Path, *options: str) -> float:
+def run_extract(session: Path, out: Path, *options: str, src: str | None = None) -> float:
+    """Seconds of one `contact-viz extract` in a fresh process; ``src``: "SRC" or "SRC@PYTHON",
+    the package's source directory (put on PYTHONPATH) and the interpreter to run it with."""
+    cli, env = CLI, None
+    if src is not None:
+        path, _, python = src.partition("@")
+        cli, env = [python or sys.executable, *CLI[1:]], {**os.environ, "PYTHONPATH": path}
     t0 = time.perf_counter()
-    subprocess.run([*CLI, "extract", str(session), "-o", str(out), *options], check=True, capture_output=True)
+    subprocess.run([*cli, "extract", str(session), "-o", str(out), *options], check=True, capture_output=True, env=env)
     return time.perf_counter() - t0
+
+
+def compare_sources(session: Path, sources: list[str], repeats: int, workdir: Path, options: list[str]) -> None:
+    """A/B: the whole extract command of each source tree (its ``src`` directory on PYTHONPATH),
+    one invocation of each in turn, ``repeats`` rounds (each starting with the next tree); medians of the wall-clock time and of the
+    CPU time (user + system, the command and its workers: steadier than wall-clock on a shared
+    machine), each tree's gain over the first, and whether all wrote the same features CSV."""
+    runs: dict[str, list[tuple[float, float]]] = {src: [] for src in sources}
+    outputs: dict[str, bytes] = {}
+    for r in range(repeats):
+        for src in sources[r % len(sources):] + sources[:r % len(sources)]:  # each round starts elsewhere
+            out = workdir / f"ab-{sources.index(src)}.csv"
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            wall = run_extract(session, out, *options, src=src)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
+            runs[src].append((wall, cpu))
+            outputs[src] = out.read_bytes()
+            print(f"  run {len(runs[src])}: {src}: wall {wall:.2f} s, cpu {cpu:.2f} s", flush=True)
+    print(f"{session.name}: extract {' '.join(options)}, medians of {repeats} interleaved invocations")
+    first = [statistics.median(v[i] for v in runs[sources[0]]) for i in (0, 1)]
+    for src in sources:
+        wall, cpu = (statistics.median(v[i] for v in runs[src]) for i in (0, 1))
+        print(f"  {src}: wall {wall:.2f} s ({100 * (first[0] - wall) / first[0]:+.1f}% vs the first), "
+              f"cpu {cpu:.2f} s ({100 * (first[1] - cpu) / first[1]:+.1f}%)")
+    same = len(set(outputs.values())) == 1
+    print(f"  features CSV identical across trees: {same}")
 
 
 def drop_page_cache() -> None:
@@ -153,6 +193,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cold", action="store_true", help="drop the page cache before every run (root)")
     parser.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "contact-viz-bench")
+    parser.add_argument("--compare", nargs="+", metavar="SRC[@PYTHON]",
+                        help="instead: A/B the extract command of these source trees (each a src/ directory put "
+                        "on PYTHONPATH, run by PYTHON if given) on the longer session, interleaved, --repeats rounds")
+    parser.add_argument("--extract-options", default="", help="with --compare: options passed to extract, "
+                        "e.g. '--processes 1'")
     parser.add_argument("--parts-of", type=Path, help=argparse.SUPPRESS)  # the child of parts_per_frame
     args = parser.parse_args()
     if args.parts_of is not None:
@@ -167,6 +212,10 @@ def main() -> None:
         t0 = time.perf_counter()
         generate_session(session, SynthParams(phantom="cup", frames=args.frames, seed=0), overwrite=True)
         print(f"  synth: {(time.perf_counter() - t0) / args.frames:.3f} s/frame at 1920x1080")
+    if args.compare:
+        longer = looped_session(session, args.loops) if args.loops > 1 else session
+        compare_sources(longer, args.compare, args.repeats, args.workdir, args.extract_options.split())
+        return
     measure(session, args.frames, args.repeats, args.cold, args.workdir)
     if args.loops > 1 and not args.cold:  # linked frames are read from disk once, then cached
         measure(looped_session(session, args.loops), args.loops * args.frames, args.repeats, False, args.workdir)

@@ -210,7 +210,7 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
     unreadable files included)."""
     import cv2
 
-    from contact_viz.pipeline.extract import _FeatureRowsTask, feature_row
+    from contact_viz.pipeline.extract import FeatureRows, feature_row
 
     root, height, width = tmp_path / "s", 97, 131
     rng = np.random.default_rng(7)
@@ -243,7 +243,7 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
     session = open_session(root)
     small = PatchParams(n1=11, n2=5, tau_tool=5, tau_patch=3, erosion_px=1.0, ring_px=1.0, band_min_px=1.0, band_max_px=2.0)
     for params in (PatchParams(), small):
-        task = _FeatureRowsTask(session, params, tuple(range(len(session))))
+        task = FeatureRows(session, params, tuple(range(len(session))))
         with pytest.warns(BadFrameWarning):
             whole = [feature_row(session, r) for r in iter_frame_results(session, params)]
         assert task(0, len(session)) == whole
@@ -252,10 +252,8 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
         assert sum(r["distance_m"] != "" for r in whole) >= 5
 
 
-def test_ctrl_c_stops_every_process_and_writes_nothing(tmp_path):
-    """Ctrl-C in a terminal reaches the command and its workers: all stop, no features file."""
-    import signal
-
+def _long_session(tmp_path: Path, n: int = 6000) -> Path:
+    """A 960x540 session of the same frame linked ``n`` times: an extract of several seconds."""
     import cv2
 
     root, height, width = tmp_path / "long", 540, 960
@@ -267,11 +265,18 @@ def test_ctrl_c_stops_every_process_and_writes_nothing(tmp_path):
     cv2.imwrite(str(tmp_path / "mask.png"), tool * 255)
     np.save(tmp_path / "depth.npy", np.full((height, width), 0.08, np.float32))
     cv2.imwrite(str(tmp_path / "left.png"), np.zeros((height, width, 3), np.uint8))
-    n = 6000  # the same frame linked many times: a run of several seconds
     for i in range(n):
         for sub, name in (("masks", "mask.png"), ("depth", "depth.npy"), ("left", "left.png")):
             (root / sub / f"{i}{Path(name).suffix}").symlink_to(tmp_path / name)
     (root / "force.csv").write_text("frame,fx,fy,fz\n" + "".join(f"{i},0,0,1\n" for i in range(n)))
+    return root
+
+
+def test_ctrl_c_stops_every_process_and_writes_nothing(tmp_path):
+    """Ctrl-C in a terminal reaches the command and its workers: all stop, no features file."""
+    import signal
+
+    root = _long_session(tmp_path)
     out = tmp_path / "out" / "features.csv"
     run = subprocess.Popen([*CLI, "extract", str(root), "-o", str(out), "--processes", "2"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
@@ -284,6 +289,28 @@ def test_ctrl_c_stops_every_process_and_writes_nothing(tmp_path):
     time.sleep(0.5)
     running = [p for p in Path("/proc").iterdir() if p.name.isdigit() and _running_in_group(p, run.pid)]
     assert running == []
+
+
+def test_a_killed_worker_is_one_error_line(tmp_path):
+    """A worker killed mid-run (e.g. by the out-of-memory killer): one line, no file, no process left."""
+    import signal
+
+    root = _long_session(tmp_path)
+    out = tmp_path / "out" / "features.csv"
+    run = subprocess.Popen([*CLI, "extract", str(root), "-o", str(out), "--processes", "2"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    time.sleep(3.0)  # started, workers running
+    assert run.poll() is None, run.communicate()
+    workers = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit() and _running_in_group(p, run.pid)
+               and b"spawn_main" in (p / "cmdline").read_bytes()]
+    assert workers
+    os.kill(workers[0], signal.SIGKILL)
+    _, stderr = run.communicate(timeout=60)
+    assert run.returncode == 2, stderr
+    assert "error: a worker process died" in stderr and "Traceback" not in stderr
+    assert not out.exists() and not out.with_name("features.csv.json").exists()
+    time.sleep(0.5)
+    assert [p for p in Path("/proc").iterdir() if p.name.isdigit() and _running_in_group(p, run.pid)] == []
 
 
 def _running_in_group(proc: Path, group: int) -> bool:

@@ -20,6 +20,7 @@ from contact_viz.geometry.patch import (
     REASON_NO_TOOL_DEPTH,
     compute_patch,
     patch_depth_rows,
+    tool_bbox,
 )
 
 SMALL = PatchParams(n1=11, n2=5, tau_tool=5, tau_patch=3, erosion_px=1.0, ring_px=1.0,
@@ -399,3 +400,20 @@ def test_patch_on_its_depth_rows_equals_patch_on_the_frame(seed):
     np.testing.assert_array_equal(band.band_yx + [row0, 0], whole.band_yx)
     if whole.found:
         assert (band.center_xy[0], band.center_xy[1] + row0) == whole.center_xy
+
+
+def test_tool_bbox_against_numpy():
+    """The tool's bounding box (cv2.boundingRect) equals the slow first/last nonzero row and column."""
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        shape = (int(rng.integers(1, 40)), int(rng.integers(1, 150)))
+        tool = (rng.random(shape) < rng.uniform(0, 0.05)).astype(np.uint8) * (1 + trial % 255)
+        rows, cols = np.flatnonzero(tool.any(axis=1)), np.flatnonzero(tool.any(axis=0))
+        expected = None if rows.size == 0 else (rows[0], rows[-1], cols[0], cols[-1])
+        assert tool_bbox(tool) == expected
+    for width in (1, 8, 65, 1920):  # a lone pixel at the first, middle and last column
+        for x in {0, width // 2, width - 1}:
+            tool = np.zeros((5, width), np.uint8)
+            tool[3, x] = 1
+            assert tool_bbox(tool) == (3, 3, x, x)
+    assert tool_bbox(np.zeros((10, 70), np.uint8)) is None

@@ -26,37 +26,6 @@ def random_mask(rng, shape, p=0.5, blobs=True):
     return (rng.random(shape) < p).astype(np.uint8)
 
 
-# ----------------------------------------------------------------------------------------- tool_bbox
-
-
-@pytest.mark.parametrize("width", [1, 7, 8, 9, 63, 64, 65, 130, 1920])
-def test_tool_bbox_single_pixels(width):
-    # A lone pixel at every column position of a row, including the last byte of a word/block.
-    for x in {0, width // 2, width - 1}:
-        tool = np.zeros((5, width), np.uint8)
-        tool[3, x] = 1
-        assert kernels.tool_bbox(tool) == (3, 3, x, x)
-
-
-def test_tool_bbox_random_against_numpy():
-    rng = np.random.default_rng(0)
-    for trial in range(200):
-        shape = (int(rng.integers(1, 40)), int(rng.integers(1, 150)))
-        tool = random_mask(rng, shape, p=float(rng.uniform(0, 0.05)), blobs=bool(trial % 2))
-        rows, cols = np.flatnonzero(tool.any(axis=1)), np.flatnonzero(tool.any(axis=0))
-        expected = None if rows.size == 0 else (rows[0], rows[-1], cols[0], cols[-1])
-        assert kernels.tool_bbox(tool) == expected
-
-
-def test_tool_bbox_empty_and_errors():
-    assert kernels.tool_bbox(np.zeros((10, 70), np.uint8)) is None
-    assert kernels.tool_bbox(np.zeros((0, 5), np.uint8)) is None
-    with pytest.raises(ValueError):
-        kernels.tool_bbox(np.zeros((4, 6), np.uint8)[:, ::2])  # not C-contiguous
-    with pytest.raises(ValueError):
-        kernels.tool_bbox(np.zeros((4, 6), np.float32))
-
-
 # --------------------------------------------------------------------------------------- fuse_layers
 
 

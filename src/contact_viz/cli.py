@@ -151,13 +151,13 @@ def extract(
     """Compute the minimum-distance patch of every frame and write one row per frame."""
     from contact_viz.console import FrameReport, check_output_file
     from contact_viz.pipeline.allocator import keep_freed_memory
-    from contact_viz.pipeline.workers import DEFAULT_PROCESSES, WorkerPool
+    from contact_viz.pipeline.parallel import DEFAULT_PROCESSES, ProcessPool, WorkerError
 
     keep_freed_memory()
     # The workers start first, so that they import NumPy, OpenCV and the patch while this
     # process does the same and opens the session.
-    with WorkerPool((processes or DEFAULT_PROCESSES) - 1, setup=keep_freed_memory,
-                    preload=("contact_viz.pipeline.extract",)) as pool:
+    with ProcessPool(processes or DEFAULT_PROCESSES, initializer=keep_freed_memory,
+                     preload=("contact_viz.pipeline.extract",)) as pool:
         from contact_viz.errors import SessionError
         from contact_viz.pipeline.extract import BadFrameWarning, extract_features, run_config, write_features
         from contact_viz.io.session import open_session
@@ -174,8 +174,11 @@ def extract(
         with warnings.catch_warnings(record=True), _progress() as progress:
             warnings.simplefilter("always", BadFrameWarning)  # the rows carry the same; reported below
             task = progress.add_task(f"extract {session.name}", total=len(session))
-            rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
-                                    pool=pool)
+            try:
+                rows = extract_features(session, params, progress=lambda done: progress.update(task, completed=done),
+                                        pool=pool)
+            except WorkerError as exc:
+                _fail(str(exc))
     report = FrameReport.from_rows(rows, lambda layer, stem: session.layer_file(layer, stem))
     _print_report(report)
     bad = sum(1 for r in rows if r["reason"] == "bad_frame")
@@ -218,7 +221,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
     from contact_viz.errors import SessionError
     from contact_viz.pipeline.allocator import keep_freed_memory
     from contact_viz.pipeline.features import load_features
-    from contact_viz.pipeline.workers import DEFAULT_PROCESSES
+    from contact_viz.pipeline.parallel import DEFAULT_PROCESSES
 
     keep_freed_memory()
     bars = []  # the progress bar of the session whose features are being computed (at most one)

@@ -1,5 +1,5 @@
-"""Platt scaling of raw scores: p = sigmoid(a z + b), fitted by Newton's method on the log-loss with
-Platt's smoothed targets."""
+"""Platt scaling of raw scores: p = sigmoid(a z + b), fitted on the log-loss with Platt's smoothed
+targets by scikit-learn's unpenalised logistic regression with sample weights."""
 
 from __future__ import annotations
 
@@ -13,9 +13,8 @@ from contact_viz.baseline.params import CONTACT, NO_CONTACT, UNKNOWN_LABEL
 from contact_viz.model.hmm import sigmoid as _sigmoid
 
 
-_PLATT_MAX_ITER = 100  # Newton iterations of the Platt fit, count
-_PLATT_GRAD_TOL = 1e-10  # stop when the mean log-loss gradient is below this, -
-_PLATT_MAX_HALVINGS = 60  # step halvings of one Newton line search, count
+_PLATT_TOL = 1e-10  # scikit-learn's lbfgs stopping tolerance of the Platt fit (gradient), -
+_PLATT_MAX_ITER = 1000  # lbfgs iterations of the Platt fit, count
 
 
 @dataclass(frozen=True)
@@ -34,9 +33,13 @@ def fit_platt(scores: Any, labels: Any) -> PlattScaling:
     """Platt scaling fitted on (n,) finite ``scores`` and (n,) ``labels`` in {-1, 0, 1} (-1 excluded).
 
     Minimises the log-loss of sigmoid(a s + b) against Platt's smoothed targets
-    (N+ + 1)/(N+ + 2) for contact and 1/(N- + 2) for no contact, by Newton's method with step
-    halving, on standardised scores (then mapped back). Both classes must be present.
+    (N+ + 1)/(N+ + 2) for contact and 1/(N- + 2) for no contact: scikit-learn's unpenalised
+    logistic regression, each frame once as contact with weight t and once as no contact with
+    weight 1 - t (the same loss), on standardised scores (then mapped back). Both classes must
+    be present.
     """
+    from sklearn.linear_model import LogisticRegression
+
     s = np.asarray(scores, dtype=np.float64)
     y = np.asarray(labels)
     if s.ndim != 1 or y.shape != s.shape:
@@ -55,30 +58,8 @@ def fit_platt(scores: Any, labels: Any) -> PlattScaling:
     if scale == 0.0:  # every score equal: only the intercept is identifiable
         t = float(target.mean())
         return PlattScaling(slope=0.0, intercept=math.log(t / (1.0 - t)))
-    u = (s - center) / scale
-    design = np.stack([u, np.ones_like(u)], axis=1)  # (n, 2)
-
-    def loss(w: np.ndarray) -> float:
-        z = design @ w
-        return float(np.sum(np.logaddexp(0.0, z) - target * z))
-
-    w = np.array([0.0, math.log(target.mean() / (1.0 - target.mean()))])
-    current = loss(w)
-    for _ in range(_PLATT_MAX_ITER):
-        p = _sigmoid(design @ w)
-        grad = design.T @ (p - target)
-        if np.max(np.abs(grad)) < _PLATT_GRAD_TOL * len(u):
-            break
-        hess = (design * (p * (1.0 - p))[:, None]).T @ design
-        step = np.linalg.lstsq(hess, grad, rcond=None)[0]
-        for _ in range(_PLATT_MAX_HALVINGS):
-            trial = w - step
-            trial_loss = loss(trial)
-            if trial_loss <= current:
-                break
-            step = step / 2.0
-        else:
-            break  # no decrease possible: at the minimum to machine precision
-        w, current = trial, trial_loss
-    slope = w[0] / scale
-    return PlattScaling(slope=float(slope), intercept=float(w[1] - slope * center))
+    u = ((s - center) / scale)[:, None]
+    fit = LogisticRegression(C=np.inf, tol=_PLATT_TOL, max_iter=_PLATT_MAX_ITER).fit(
+        np.concatenate([u, u]), np.r_[np.ones(len(u)), np.zeros(len(u))], sample_weight=np.r_[target, 1.0 - target])
+    slope = float(fit.coef_[0, 0]) / scale
+    return PlattScaling(slope=slope, intercept=float(fit.intercept_[0]) - slope * center)

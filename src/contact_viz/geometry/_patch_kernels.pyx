@@ -14,82 +14,10 @@ row 0 and column 0 zero, I[y+1, x+1] = I[y, x+1] + (sum of row y up to column x)
 import numpy as np
 
 from libc.math cimport NAN, isfinite
-from libc.string cimport memcpy
 
 ctypedef fused depth_t:
     float
     double
-
-
-cdef inline Py_ssize_t _first_nonzero(const unsigned char* row, Py_ssize_t width) noexcept nogil:
-    """Index of the first nonzero byte of ``row[:width]``, or ``width``; 64, then 8 bytes at a time."""
-    cdef Py_ssize_t x = 0
-    cdef unsigned long long word
-    cdef unsigned long long block[8]
-    while x + 64 <= width:
-        memcpy(block, row + x, 64)
-        if (block[0] | block[1] | block[2] | block[3] | block[4] | block[5] | block[6] | block[7]) != 0:
-            break
-        x += 64
-    while x + 8 <= width:
-        memcpy(&word, row + x, 8)
-        if word != 0:
-            break
-        x += 8
-    while x < width and row[x] == 0:
-        x += 1
-    return x
-
-
-cdef inline Py_ssize_t _last_nonzero(const unsigned char* row, Py_ssize_t width) noexcept nogil:
-    """Index of the last nonzero byte of ``row[:width]``, or -1; 64, then 8 bytes at a time."""
-    cdef Py_ssize_t x = width
-    cdef unsigned long long word
-    cdef unsigned long long block[8]
-    while x >= 64:
-        memcpy(block, row + x - 64, 64)
-        if (block[0] | block[1] | block[2] | block[3] | block[4] | block[5] | block[6] | block[7]) != 0:
-            break
-        x -= 64
-    while x >= 8:
-        memcpy(&word, row + x - 8, 8)
-        if word != 0:
-            break
-        x -= 8
-    x -= 1
-    while x >= 0 and row[x] == 0:
-        x -= 1
-    return x
-
-
-def tool_bbox(const unsigned char[:, ::1] tool):
-    """Inclusive bounds ``(row0, row1, col0, col1)`` of the nonzero pixels of ``tool``
-    ((H, W) uint8, C-contiguous; a bool array viewed as uint8), or None when there are none.
-
-    Each row is searched from each end for its first nonzero pixel, 8 bytes at a time.
-    """
-    cdef Py_ssize_t height = tool.shape[0], width = tool.shape[1]
-    cdef Py_ssize_t y, x, row0 = -1, row1 = -1, col0 = width, col1 = -1
-    cdef const unsigned char* row
-    if height == 0 or width == 0:
-        return None
-    with nogil:
-        for y in range(height):
-            row = &tool[y, 0]
-            x = _first_nonzero(row, width)
-            if x == width:
-                continue
-            if row0 < 0:
-                row0 = y
-            row1 = y
-            if x < col0:
-                col0 = x
-            x = _last_nonzero(row, width)
-            if x > col1:
-                col1 = x
-    if row0 < 0:
-        return None
-    return int(row0), int(row1), int(col0), int(col1)
 
 
 def fuse_layers(

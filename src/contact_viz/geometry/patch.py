@@ -283,6 +283,13 @@ def _crop_bounds(bbox: tuple[int, int, int, int], shape: tuple[int, int], params
     return max(row0 - pad, 0), min(row1 + pad + 1, shape[0]), max(col0 - pad, 0), min(col1 + pad + 1, shape[1])
 
 
+def tool_bbox(tool_u8: np.ndarray) -> tuple[int, int, int, int] | None:
+    """Inclusive bounds ``(row0, row1, col0, col1)`` of the nonzero pixels of the (H, W) uint8
+    ``tool_u8``, or None when there are none."""
+    x, y, w, h = cv2.boundingRect(tool_u8)
+    return None if w == 0 else (y, y + h - 1, x, x + w - 1)
+
+
 def patch_depth_rows(tool_mask: np.ndarray, params: PatchParams = PatchParams()) -> tuple[int, int]:
     """Rows ``(row0, row1)``, half-open, outside which :func:`compute_patch` never reads the
     depth for this ``tool_mask`` ((H, W) bool or integer); ``(0, 0)`` for an empty mask.
@@ -294,7 +301,7 @@ def patch_depth_rows(tool_mask: np.ndarray, params: PatchParams = PatchParams())
     """
     if not isinstance(tool_mask, np.ndarray) or tool_mask.ndim != 2:
         raise ValueError(f"tool_mask must be a 2-D array (H, W), got shape {getattr(tool_mask, 'shape', None)}")
-    bbox = _kernels.tool_bbox(_tool_u8(tool_mask))
+    bbox = tool_bbox(_tool_u8(tool_mask))
     if bbox is None:
         return 0, 0
     y0, y1, _, _ = _crop_bounds(bbox, tool_mask.shape, params)
@@ -306,7 +313,7 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     _check_inputs(depth_m, tool_mask)
     shape = depth_m.shape
     tool_full_u8 = _tool_u8(tool_mask)
-    bbox = _kernels.tool_bbox(tool_full_u8)
+    bbox = tool_bbox(tool_full_u8)
     if bbox is None:
         return _empty_result(shape, REASON_EMPTY_MASK)
     y0, y1, x0, x1 = _crop_bounds(bbox, shape, params)

@@ -61,6 +61,7 @@ def _mask_ids(data: np.ndarray) -> np.ndarray | None:
     raw = data.tobytes()
     if not is_palette_png(raw):
         return _imdecode_unchanged(data)
+    # palette_png, not PIL: 4.2 vs 5.4 ms per 1080p mask, about 15% of extract's CPU per frame (micro A/B)
     ids = palette_indices(raw)
     if ids is None:
         with Image.open(io.BytesIO(raw)) as image:
@@ -190,6 +191,7 @@ def read_depth_rows_m(path: Path, row0: int, row1: int, image_size: tuple[int, i
         _check_image_shape(path, shape, image_size, "depth map")
 
     with _loading(path, what):
+        # read_npy_rows, not np.load(mmap_mode="r")[row0:row1]: extract 14.7% faster (bench_extract --compare)
         rows, _ = read_npy_rows(path, row0, row1, check=check)
     return np.ascontiguousarray(rows, dtype=np.float32)
 

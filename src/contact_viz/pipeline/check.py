@@ -83,7 +83,7 @@ def measure_loaded_frame(session: Session, frame, patch, left_grey, right_grey, 
 
 @dataclass(frozen=True)
 class _MeasureTask:
-    """Frame records of positions lo..hi-1 (a contact_viz.pipeline.workers.ChunkTask)."""
+    """Frame records of positions lo..hi-1 (a contact_viz.pipeline.parallel.ChunkTask)."""
 
     session: Session
     patch_params: PatchParams
@@ -146,7 +146,7 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
     ``processes`` counts this one (1 = no worker process). Raises SessionError on a session-wide
     problem; an unreadable frame is a ``bad_frame`` and the run goes on.
     """
-    from contact_viz.pipeline.workers import run_chunks
+    from contact_viz.pipeline.parallel import run_chunks
 
     started = time.perf_counter()
     params = params or DiagnosticParams()

@@ -1,9 +1,10 @@
 """Per-frame features of a session: the minimum-distance patch of every frame, as table rows.
 
 This module joins the session reader and the patch computation; it does no drawing and no
-logging to Rerun. :func:`iter_frame_results` is the streaming core shared with the viewer;
-:func:`extract_features` collects the rows; :func:`write_features` saves them atomically with
-the resolved configuration beside them.
+logging to Rerun. :class:`FeatureRows` computes the rows of `contact-viz extract`, in one
+process or several (:mod:`contact_viz.pipeline.parallel`); :func:`extract_features` runs it;
+:func:`write_features` saves the rows atomically with the resolved configuration beside them.
+:func:`iter_frame_results` streams whole frames with their patches, for the viewer.
 """
 
 from __future__ import annotations
@@ -28,13 +29,14 @@ from contact_viz.io.jsonfile import read_json, write_json
 from contact_viz.params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
 from contact_viz.geometry.patch import PatchResult, compute_patch, patch_depth_rows
 from contact_viz.io.session import BadFrame, Frame, Session
+from contact_viz.pipeline.allocator import keep_freed_memory
 
 if TYPE_CHECKING:
-    from contact_viz.pipeline.workers import WorkerPool
+    from contact_viz.pipeline.parallel import ProcessPool
 
 REASON_BAD_FRAME = "bad_frame"
-DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # frames whose patches are computed at once (threads)
-CHUNK_FRAMES = 8  # frames a process claims at a time when the frames are spread over processes
+DEFAULT_WORKERS = min(2, os.cpu_count() or 1)  # frames whose patches the viewer computes at once (threads)
+CHUNK_FRAMES = 8  # frames computed per job, in this process or a worker
 
 # Columns of features.csv, in order. Units are in the names; see the README for each.
 FEATURE_COLUMNS = (
@@ -149,12 +151,13 @@ def feature_row(session: Session, result: FrameResult, patch_row0: int = 0) -> d
 
 
 @dataclass(frozen=True)
-class _FeatureRowsTask:
-    """The features rows of positions ``lo`` to ``hi - 1`` of ``indices``, one frame at a time
-    (a :class:`contact_viz.pipeline.workers.ChunkTask`: pickled once into each worker process).
+class FeatureRows:
+    """The features rows of positions ``lo`` to ``hi - 1`` of ``indices``, one frame at a time:
+    the one function that computes extract's rows, in this process or in the workers of a
+    :class:`contact_viz.pipeline.parallel.ProcessPool` (a ``ChunkTask``).
 
     Each frame's depth is read only in the rows the patch needs (patch.patch_depth_rows); the
-    rows equal those of :func:`iter_frame_results` on whole frames.
+    rows equal those of :func:`feature_row` over :func:`iter_frame_results` on whole frames.
     """
 
     session: Session
@@ -183,40 +186,30 @@ def extract_features(
     indices: Sequence[int] | None = None,
     progress: Callable[[int], None] | None = None,
     processes: int = 1,
-    pool: WorkerPool | None = None,
+    pool: ProcessPool | None = None,
 ) -> list[dict[str, object]]:
     """One features row per frame of ``session`` (bad frames included, with reason ``bad_frame``,
-    and a :class:`BadFrameWarning` each).
+    and a :class:`BadFrameWarning` each), computed by :class:`FeatureRows`.
 
-    ``progress`` is called with the number of frames done. With ``processes`` > 1 the frames are
-    spread over this process and ``processes - 1`` spawned ones (threads cannot use more than
-    about one core for this work); ``pool`` instead shares them with workers started beforehand,
-    which import while the caller opens the session (the CLI starts
-    ``WorkerPool(n, setup=keep_freed_memory, preload=("contact_viz.pipeline.extract",))`` first thing).
-    Either way the rows are the same.
+    ``progress`` is called with the number of frames done. ``processes`` > 1 spreads the frames
+    over this process and ``processes - 1`` spawned ones (threads cannot use more than about
+    one core for this work); ``pool`` instead uses a pool started beforehand, whose workers import while the
+    caller opens the session (the CLI starts ``ProcessPool(n, initializer=keep_freed_memory,
+    preload=("contact_viz.pipeline.extract",))`` first thing). The rows
+    are the same whatever the number of processes.
     """
-    if processes == 1 and pool is None:
-        rows = []
-        for done, result in enumerate(iter_frame_results(session, params, indices=indices), start=1):
-            rows.append(feature_row(session, result))
-            if progress is not None:
-                progress(done)
-        return rows
-    from contact_viz.pipeline.allocator import keep_freed_memory
-    from contact_viz.pipeline.workers import run_chunks
+    from contact_viz.pipeline.parallel import run_chunks
 
     order = tuple(range(len(session))) if indices is None else tuple(int(i) for i in indices)
     bad = [i for i in order if not 0 <= i < len(session)]
     if bad:
-        if pool is not None:
-            pool.close()
         raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(session)} frames")
-    task = _FeatureRowsTask(session, params, order)
+    task = FeatureRows(session, params, order)
     if pool is not None:
-        rows = pool.run(task, len(order), chunk_size=CHUNK_FRAMES, progress=progress)
+        rows = pool.map_chunks(task, len(order), chunk_size=CHUNK_FRAMES, progress=progress)
     else:
         rows = run_chunks(task, len(order), chunk_size=CHUNK_FRAMES, processes=processes, progress=progress,
-                          worker_setup=keep_freed_memory)
+                          initializer=keep_freed_memory)
     for row in rows:
         if row["reason"] == REASON_BAD_FRAME:
             warnings.warn(f"frame {row['frame']} skipped: {row['detail']}", BadFrameWarning, stacklevel=2)

@@ -1,4 +1,4 @@
-"""workers.run_chunks: chunks of items shared between the caller and spawned worker processes."""
+"""parallel.ProcessPool / run_chunks: work shared by spawned worker processes, results in order."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from contact_viz.pipeline.workers import WorkerError, chunk_bounds, run_chunks
+from contact_viz.pipeline.parallel import ProcessPool, WorkerError, chunk_bounds, run_chunks
 
 
 @dataclass(frozen=True)
@@ -24,39 +24,50 @@ class Squares:
 
 
 @dataclass(frozen=True)
+class CallerFails:
+    caller_pid: int
+
+    def __call__(self, lo: int, hi: int) -> list[int]:
+        if os.getpid() == self.caller_pid:
+            raise KeyError("the caller's own error")
+        return list(range(lo, hi))
+
+
+@dataclass(frozen=True)
+class SlowSquares(Squares):
+    def __call__(self, lo: int, hi: int):
+        time.sleep(0.01)
+        return super().__call__(lo, hi)
+
+
+@dataclass(frozen=True)
 class FailsInWorker:
-    """Raises in a worker; slow in the caller, so that a worker starts before the items run out."""
+    """Raises in a worker process (never in the caller)."""
 
     caller_pid: int
 
     def __call__(self, lo: int, hi: int) -> list[int]:
         if os.getpid() != self.caller_pid:
             raise ArithmeticError(f"items {lo}..{hi - 1} are bad")
-        time.sleep(0.005)
+        time.sleep(0.01)
         return list(range(lo, hi))
 
 
 @dataclass(frozen=True)
 class DiesInWorker:
-    """Kills its own process in a worker (its claimed chunk is never delivered); slow in the caller."""
+    """Kills its own process in a worker."""
 
     caller_pid: int
 
     def __call__(self, lo: int, hi: int) -> list[int]:
         if os.getpid() != self.caller_pid:
             os.kill(os.getpid(), signal.SIGKILL)
-        time.sleep(0.005)
+        time.sleep(0.01)
         return [i * 10 for i in range(lo, hi)]
 
 
-@dataclass(frozen=True)
-class CallerFails:
-    caller_pid: int
-
-    def __call__(self, lo: int, hi: int) -> list[int]:
-        if os.getpid() == self.caller_pid and lo > 0:
-            raise KeyError("the caller's own error")
-        return list(range(lo, hi))
+def square(x: int) -> int:
+    return x * x
 
 
 def test_chunk_bounds():
@@ -78,34 +89,41 @@ def test_results_in_item_order(processes, n_items, chunk):
     assert multiprocessing.active_children() == []  # every worker was stopped and joined
 
 
-def test_work_is_shared_with_a_worker():
-    # Enough chunks that a spawned worker, once started, takes some of them.
-    out = run_chunks(SlowSquares(), 400, chunk_size=2, processes=2)
-    pids = {pid for _, _, pid in out}
-    assert os.getpid() in pids and len(pids) == 2
-
-
-@dataclass(frozen=True)
-class SlowSquares(Squares):
-    def __call__(self, lo: int, hi: int):
-        time.sleep(0.005)
-        return super().__call__(lo, hi)
+def test_work_is_shared_by_the_caller_and_the_workers():
+    out = run_chunks(SlowSquares(), 200, chunk_size=2, processes=3)
+    pids = [pid for _, _, pid in out]
+    assert len(set(pids)) >= 2 and pids[-1] == os.getpid()  # the caller takes the chunks from the back
 
 
 def test_single_process_starts_nothing():
     out = run_chunks(Squares(), 10, chunk_size=3, processes=1)
     assert {pid for _, _, pid in out} == {os.getpid()}
-
-
-def test_worker_exception_is_raised_in_caller():
-    with pytest.raises(WorkerError, match=r"(?s)a worker process failed on items \d+\.\.\d+:.*ArithmeticError: items"):
-        run_chunks(FailsInWorker(os.getpid()), 400, chunk_size=2, processes=2)
+    with ProcessPool(1) as pool:
+        assert pool.map(square, range(5)) == [0, 1, 4, 9, 16]
     assert multiprocessing.active_children() == []
 
 
-def test_killed_worker_leaves_its_chunk_to_the_caller():
-    out = run_chunks(DiesInWorker(os.getpid()), 300, chunk_size=2, processes=2)
-    assert out == [i * 10 for i in range(300)]
+def test_pool_runs_several_jobs_then_stops():
+    """One pool, several jobs (as `contact-viz batch` runs sessions, then frame chunks)."""
+    with ProcessPool(2) as pool:
+        done = []
+        assert pool.map(square, range(7), progress=done.append) == [k * k for k in range(7)]
+        assert done == list(range(1, 8))
+        assert [sq for _, sq, _ in pool.map_chunks(Squares(), 9, chunk_size=4)] == [k * k for k in range(9)]
+        assert len(multiprocessing.active_children()) == 1  # the caller is the second process
+    assert multiprocessing.active_children() == []
+
+
+def test_worker_exception_is_raised_in_caller_as_it_is():
+    with pytest.raises(ArithmeticError, match=r"items \d+\.\.\d+ are bad") as caught:
+        run_chunks(FailsInWorker(os.getpid()), 200, chunk_size=2, processes=2)
+    assert "Traceback" in str(caught.value.__cause__)  # the worker's traceback
+    assert multiprocessing.active_children() == []
+
+
+def test_killed_worker_is_reported_and_the_pool_stopped():
+    with pytest.raises(WorkerError, match=r"worker process died .* items \d+\.\.\d+; the pool was stopped"):
+        run_chunks(DiesInWorker(os.getpid()), 300, chunk_size=2, processes=2)
     assert multiprocessing.active_children() == []
 
 
@@ -119,6 +137,6 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="processes"):
         run_chunks(Squares(), 5, chunk_size=2, processes=0)
     with pytest.raises(ValueError, match="processes"):
-        run_chunks(Squares(), 5, chunk_size=2, processes=True)
+        ProcessPool(True)
     with pytest.raises(ValueError, match="expected 2"):
         run_chunks(lambda lo, hi: [0], 4, chunk_size=2, processes=1)
