@@ -4,40 +4,7 @@ Everything here receives an explicit ``rr.RecordingStream`` and objects the pipe
 computed (the session, :class:`~contact_viz.pipeline.extract.FrameResult`, a :class:`FrameView` of
 display-ready arrays, diagnostics); it computes no geometry and no posterior itself.
 
-Entity tree (the README lists it too)::
-
-    world                          ViewCoordinates RDF, AnnotationContext of the layer classes (static)
-    world/camera/left              Pinhole from K.txt (static)
-    world/camera/left/image        left image: VideoStream (AV1/H.264, --images video), EncodedImage (JPEG) or Image (raw)
-    world/camera/left/layers       SegmentationImage of the layer classes (full resolution)
-    world/camera/left/patch        Boxes2D: the N2 window of the selected patch, labelled with its distance
-    world/camera/right             Transform3D (baseline along +x) + Pinhole (static)
-    world/camera/right/image       right image
-    world/camera/depth             Pinhole of the decimated depth grid (K / depth step, static)
-    world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m)
-    world/camera/depth/layers      SegmentationImage of the layer classes on the depth grid
-    world/camera/depth/patch       Boxes2D: the patch window on the depth grid
-    world/cloud/near               Points3D: RGB cloud around the patch (every 2nd pixel)
-    world/cloud/far                Points3D: RGB cloud elsewhere, every 16th pixel merged into 4 mm voxels
-    world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
-    world/patch/tool               Points3D: interior pixels whose depths gave the tool depth
-    world/patch/gap                Arrows3D: tool depth -> tissue along the patch centre's ray
-    series/distance                Scalars: patch distance, mm
-    series/signal                  Scalars: -log10(max(|d|, eps))
-    series/force/{magnitude,x,y,z} Scalars: force, N (send_columns, known up front)
-    series/contact/truth           Scalars: ground-truth contact 0/1 (send_columns)
-    series/contact/posterior       Scalars: causal HMM posterior (only with a model)
-    series/contact/threshold       Scalars: decision threshold (send_columns, only with a model)
-    series/contact/predicted       Scalars: posterior >= threshold, 0/1 (only with a model)
-    series/diagnostics/invalid_depth_fraction   Scalars: share of band pixels with invalid depth
-    series/diagnostics/<code>      Scalars (points): a marker at each frame where that check fired (at its score)
-    series/diagnostics/score/<code>  Scalars: the check's measured value / its threshold (> 1 fires), clipped at 3
-    world/camera/left/evidence/residual  EncodedImage: stereo residual |left - warped right| near the tool (fired frames)
-    world/camera/left/evidence/contour   Points2D: mask contour, green on an image edge, red off (fired frames)
-    log                            TextLog: bad frames, diagnostics, the no-model hint
-    config                         TextDocument (static): the run's resolved configuration (JSON)
-
-Timelines: ``frame`` (sequence, the frame's index in the session) and ``time`` (duration, s).
+The entity paths and timelines are in :mod:`contact_viz.viz.entities` (re-exported here).
 """
 
 from __future__ import annotations
@@ -60,6 +27,7 @@ from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, SESSION_DIAGNOSTIC_COD
 from contact_viz.geometry.pointcloud import Cloud, PatchGeometry
 from contact_viz.io.session import BadFrame, Session
 from contact_viz.params import MM_PER_M
+from contact_viz.viz.entities import *  # noqa: F403  (the entity paths, re-exported for scripts)
 from contact_viz.viz.style import (
     DEPTH_COLORMAP,
     DIAGNOSTIC_STYLES,
@@ -123,55 +91,6 @@ __all__ = [
     "set_frame_time",
 ]
 
-APPLICATION_ID = "contact_viz"  # Rerun application id of every recording
-
-ENTITY_WORLD = "world"
-ENTITY_LEFT_CAMERA = "world/camera/left"
-ENTITY_LEFT_IMAGE = "world/camera/left/image"
-ENTITY_LEFT_LAYERS = "world/camera/left/layers"
-ENTITY_LEFT_PATCH = "world/camera/left/patch"
-ENTITY_RIGHT_CAMERA = "world/camera/right"
-ENTITY_RIGHT_IMAGE = "world/camera/right/image"
-ENTITY_DEPTH_CAMERA = "world/camera/depth"
-ENTITY_DEPTH_IMAGE = "world/camera/depth/image"
-ENTITY_DEPTH_LAYERS = "world/camera/depth/layers"
-ENTITY_DEPTH_PATCH = "world/camera/depth/patch"
-ENTITY_CLOUD_NEAR = "world/cloud/near"
-ENTITY_CLOUD_FAR = "world/cloud/far"
-ENTITY_PATCH_TISSUE = "world/patch/tissue"
-ENTITY_PATCH_TOOL = "world/patch/tool"
-ENTITY_PATCH_GAP = "world/patch/gap"
-ENTITY_SERIES_DISTANCE = "series/distance"
-ENTITY_SERIES_SIGNAL = "series/signal"
-ENTITY_SERIES_FORCE = "series/force"
-FORCE_ENTITIES = {  # force series entity -> SERIES_STYLES key
-    "series/force/magnitude": "force_n",
-    "series/force/x": "force_x_n",
-    "series/force/y": "force_y_n",
-    "series/force/z": "force_z_n",
-}
-ENTITY_SERIES_CONTACT = "series/contact"
-ENTITY_SERIES_TRUTH = "series/contact/truth"
-ENTITY_SERIES_POSTERIOR = "series/contact/posterior"
-ENTITY_SERIES_THRESHOLD = "series/contact/threshold"
-ENTITY_SERIES_PREDICTED = "series/contact/predicted"
-ENTITY_SERIES_DIAGNOSTICS = "series/diagnostics"
-ENTITY_SERIES_INVALID_DEPTH = "series/diagnostics/invalid_depth_fraction"
-ENTITY_SERIES_SCORES = "series/diagnostics/score"
-ENTITY_LEFT_EVIDENCE = "world/camera/left/evidence"
-ENTITY_EVIDENCE_RESIDUAL = "world/camera/left/evidence/residual"
-ENTITY_EVIDENCE_CONTOUR = "world/camera/left/evidence/contour"
-ENTITY_LOG = "log"
-ENTITY_KINEMATIC_TIP = "world/kinematics/tip"  # Points3D: the robot's tool tip (hand-eye x kinematics.csv)
-ENTITY_KINEMATIC_AXES = "world/kinematics/axes"  # Arrows3D: the tool frame's x, y, z axes at the tip
-ENTITY_LEFT_KINEMATIC_TIP = "world/camera/left/kinematic_tip"  # Points2D: its projection on the left image
-ENTITY_LEFT_MASK_TIP = "world/camera/left/mask_tip"  # Points2D: the tool tip estimated from the mask
-ENTITY_SERIES_TIP = "series/tip"  # Scalars error_px, error_mm: kinematic tip vs mask tip
-ENTITY_CONFIG = "config"  # TextDocument (static): the resolved configuration of the run, JSON
-
-TIMELINE_FRAME = "frame"  # sequence timeline: frame index in the session
-TIMELINE_TIME = "time"  # duration timeline: session time, s
-
 IMAGE_PLANE_DISTANCE_M = 0.015  # how far from each camera its image is drawn in the 3D view, m
 GAP_ARROW_RADIUS_M = 0.0002  # shaft radius of the gap arrow, m
 BOX_LINE_RADIUS_PX = 1.5  # half line width of the patch box, UI px (negative radii in Rerun = UI units)
@@ -194,25 +113,6 @@ MODEL_HINT = (
     "No contact model given, so there is no HMM posterior. Fit one on labelled training sessions with "
     "`contact-viz fit TRAIN_SESSION... -o model.json`, then add `--model model.json`."
 )
-
-# Per-frame entities, cleared at a bad frame so the viewer does not show the previous frame's data.
-PER_FRAME_ENTITIES = (
-    ENTITY_LEFT_IMAGE, ENTITY_LEFT_LAYERS, ENTITY_LEFT_PATCH, ENTITY_RIGHT_IMAGE, ENTITY_DEPTH_IMAGE,
-    ENTITY_DEPTH_LAYERS, ENTITY_DEPTH_PATCH, ENTITY_CLOUD_NEAR, ENTITY_CLOUD_FAR, ENTITY_PATCH_TISSUE,
-    ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP,
-)
-PATCH_ENTITIES = (ENTITY_LEFT_PATCH, ENTITY_DEPTH_PATCH, ENTITY_PATCH_TISSUE, ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP)
-
-
-def diagnostic_entity(code: str) -> str:
-    """Entity path of the marker series of diagnostic ``code``."""
-    return f"{ENTITY_SERIES_DIAGNOSTICS}/{code}"
-
-
-def diagnostic_score_entity(code: str) -> str:
-    """Entity path of the score series (measured value / threshold) of diagnostic ``code``."""
-    return f"{ENTITY_SERIES_SCORES}/{code}"
-
 
 def _marker_height(code: str, scores) -> float:
     """Where a firing check's marker sits: on its score line (clipped), or at 1 for checks without a score."""
