@@ -206,3 +206,19 @@ def test_check_step_writes_the_check_report(dataset, tmp_path):
         assert written == direct
         fired = {code: c["frames"] for code, c in direct["checks"].items() if c["frames"]}
         assert outcome.checks_fired == fired
+
+
+def test_grid_search_scores_do_not_depend_on_the_engine(dataset, tmp_path):
+    from contact_viz.paper.grid_search import build_grid, score_grid
+
+    grid, _ = build_grid([29, 31], [17], [30], [8], base=PatchParams(reject_bleeding=False))
+    sessions = [dataset / f"cup_{k}" for k in range(3)]
+    alone = score_grid(sessions, grid, tmp_path / "c1", on_skip=lambda note: None)
+    engine = LocalEngine(2)
+    try:
+        spread = score_grid(sessions, grid, tmp_path / "c2", on_skip=lambda note: None, engine=engine)
+    finally:
+        engine.close()
+    assert [(p.params, p.oof_f1, p.oof_auprc, p.found) for p in spread] == \
+        [(p.params, p.oof_f1, p.oof_auprc, p.found) for p in alone]
+    assert len(alone) == 2
