@@ -268,9 +268,16 @@ def run_batch(
                 calls.append((check_task, (job,)) if step == "check" else (view_task, (job, options.model_path)))
                 owners.append((name, 0))
         results: dict[str, dict[int, dict]] = {}
-        for position, result in engine.run(calls):
+        base = done
+
+        def step_progress(finished: int, step: str = step, base: int = base) -> None:
+            nonlocal done
+            done = base + finished
+            if progress is not None:
+                progress(done, total, step)
+
+        for position, result in engine.run(calls, progress=step_progress):
             name, lo = owners[position]
-            tick(step)
             if isinstance(result, BaseException):
                 fail(name, step, result)
                 continue

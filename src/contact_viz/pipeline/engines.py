@@ -5,8 +5,9 @@ completes, where ``result`` is the function's return value or the exception it r
 call never stops the others). Functions must be importable module-level functions and their
 arguments and results picklable, because they run in other processes or on other machines.
 
-- :class:`LocalEngine`: ``concurrent.futures.ProcessPoolExecutor`` with spawned processes (one per
-  core by default); with one process the calls run in this process, one after the other.
+- :class:`LocalEngine`: the process pool of `contact-viz extract` (:mod:`contact_viz.pipeline.parallel`:
+  spawned processes, one per core by default, this one included); with one process the calls run
+  in this process, one after the other.
 - :class:`RayEngine`: each call is a Ray task (``num_cpus=1``). ``address=None`` starts a local
   Ray on the fly; otherwise it joins an existing cluster (``"auto"``, or ``"ray://HOST:10001"``).
   Ray is imported only here, only when this engine is created (``pip install contact-viz[ray]``).
@@ -17,11 +18,11 @@ arguments and results picklable, because they run in other processes or on other
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Any
+
+from contact_viz.errors import SessionError
+from contact_viz.pipeline.parallel import DEFAULT_PROCESSES, ProcessPool
 
 Call = tuple[Callable[..., Any], tuple]
 
@@ -29,47 +30,36 @@ __all__ = ["Call", "LocalEngine", "RayEngine", "default_processes"]
 
 
 def default_processes() -> int:
-    """The usable cores of this process (at most 8)."""
+    """The usable cores of this process (at most 8), as `contact-viz extract` uses them."""
+    return DEFAULT_PROCESSES
+
+
+def _capture(call: Call) -> Any:
+    """Run one call; its exception is returned as its result (a failing call never stops the others)."""
+    function, args = call
     try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, 8))
+        return function(*args)
+    except SessionError as exc:  # its (path, expected) constructor does not survive pickling: keep type and text
+        return ValueError(str(exc))
+    except Exception as exc:
+        return exc
 
 
 class LocalEngine:
-    """This machine's cores: spawned worker processes (``processes`` of them; 1 = in this process)."""
+    """This machine's cores: the pool `contact-viz extract` uses (:class:`contact_viz.pipeline.parallel.ProcessPool`,
+    ``processes`` processes, this one included; 1 = in this process)."""
 
     name = "local"
 
     def __init__(self, processes: int | None = None) -> None:
         self.processes = processes or default_processes()
-        self._pool: ProcessPoolExecutor | None = None
-        if self.processes > 1:
-            self._pool = ProcessPoolExecutor(max_workers=self.processes,
-                                             mp_context=multiprocessing.get_context("spawn"))
+        self._pool = ProcessPool(self.processes)
 
-    def run(self, calls: Sequence[Call]) -> Iterator[tuple[int, Any]]:
-        if self._pool is None:
-            for position, (function, args) in enumerate(calls):
-                try:
-                    result = function(*args)
-                except Exception as exc:  # reported per call, as the pool does
-                    result = exc
-                yield position, result
-            return
-        futures: dict[Future, int] = {self._pool.submit(function, *args): i for i, (function, args) in enumerate(calls)}
-        pending = set(futures)
-        while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for future in done:
-                exc = future.exception()
-                yield futures[future], exc if exc is not None else future.result()
+    def run(self, calls: Sequence[Call], progress: Callable[[int], None] | None = None) -> Iterator[tuple[int, Any]]:
+        yield from enumerate(self._pool.map(_capture, list(calls), progress=progress))
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(cancel_futures=True)
-            self._pool = None
+        self._pool.close()
 
     def describe(self) -> str:
         return f"local, {self.processes} process{'es' if self.processes > 1 else ''}"
@@ -102,7 +92,7 @@ class RayEngine:
         self.address = address
         self._remote: dict[Callable, Any] = {}
 
-    def run(self, calls: Sequence[Call]) -> Iterator[tuple[int, Any]]:
+    def run(self, calls: Sequence[Call], progress: Callable[[int], None] | None = None) -> Iterator[tuple[int, Any]]:
         ray = self._ray
         refs = {}
         for position, (function, args) in enumerate(calls):
@@ -111,6 +101,7 @@ class RayEngine:
                 remote = self._remote[function] = ray.remote(num_cpus=1, max_retries=0)(function)
             refs[remote.remote(*args)] = position
         pending = list(refs)
+        finished = 0
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             for ref in done:
@@ -120,6 +111,9 @@ class RayEngine:
                     result = exc.cause if isinstance(exc.cause, BaseException) else RuntimeError(str(exc))
                 except ray.exceptions.RayError as exc:  # a worker or node died
                     result = RuntimeError(f"Ray task lost: {type(exc).__name__}: {exc}")
+                finished += 1
+                if progress is not None:
+                    progress(finished)
                 yield refs[ref], result
 
     def close(self) -> None:
