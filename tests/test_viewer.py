@@ -699,3 +699,18 @@ def test_right_video_at_half_size(default_run, session_dir):
         assert rgb.shape == half.shape == (H // 2, W // 2, 3)
         # 160x90 px of random 2 px colour blocks is the worst case of 4:2:0 video (1080p: benchmarks/bench_viewer.py)
         assert psnr_db(rgb, half) >= 28.0
+
+
+def test_view_with_no_readable_frame_fails_and_leaves_no_recording(session_dir, tmp_path):
+    """Every mask unreadable (a per-frame fault on every frame): one error line, exit 2, no .rrd."""
+    broken = tmp_path / "sess"
+    shutil.copytree(session_dir, broken)
+    for mask in (broken / "masks").iterdir():
+        mask.write_bytes(b"not a png")
+    out = tmp_path / "out.rrd"
+    proc = subprocess.run([sys.executable, "-m", "contact_viz.cli", "view", str(broken), "--save", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == f"error: {broken}: no frame could be read (see the warnings above); no recording written"
+    assert not out.exists()

@@ -378,6 +378,11 @@ def view(
         _fail(str(exc))
     report.add_warnings(caught)
     _print_report(report)
+    if summary.frames and summary.bad_frames == summary.frames and not summary.interrupted:
+        opened.rec.disconnect()  # closes the file sink before the file is removed
+        if save is not None:
+            save.unlink(missing_ok=True)
+        _fail(f"{session.root}: no frame could be read (see the warnings above); no recording written")
     for line in summary.lines():
         typer.echo(line)
     if save is not None:
