@@ -25,21 +25,18 @@ def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: C
     """Run ``fit`` and/or ``evaluate`` (as in ``options.steps``) on the features under ``out``."""
     from contact_viz.model.hmm import LosoEnsemble
     from contact_viz.model.model_file import ContactModel, check_params, load_model, save_model
-    from contact_viz.pipeline.extract import feature_arrays, read_features, read_features_config
+    from contact_viz.pipeline.features import csv_features
 
     features = {}
     for name in names:
         path = out / name / "features.csv"
         if not path.exists():
             continue
-        file_params, _ = read_features_config(path)
         try:
-            check_params(options.params, file_params, str(path))
+            found = csv_features(path, options.params)
         except ValueError:  # features of other parameters (an older run): not this batch's
             continue
-        rows = read_features(path)
-        signal, labels = feature_arrays(rows)
-        features[name] = ([r["frame"] for r in rows], signal, labels)
+        features[name] = (found.frames, found.signal, found.labels)
     model = None
     if "fit" in options.steps:
         labelled = [n for n in names if n in features and (features[n][2] >= 0).any()]
