@@ -457,3 +457,34 @@ def test_true_depth_is_the_noiseless_depth_of_the_session(tmp_path):
         assert seen.mean() > 0.8
         np.testing.assert_allclose(depth[seen], truth[i][seen], rtol=1e-5)
         assert np.all(truth[i][_load_mask(session, i) > 0] > 0)  # the tool is there in the truth too
+
+
+def test_spread_tool_depth_against_a_literal_loop_and_at_the_image_border():
+    """The tool's depth bled px past its edge: each background pixel with a tool pixel that has depth within
+    the disc takes the smallest such depth (a literal loop); a pixel at the image border whose tool
+    neighbours are all holes keeps its depth (cv2.erode pads with FLT_MAX: it used to get 3.4e38 m)."""
+    from contact_viz.synth.sensors import spread_tool_depth
+
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.08, 0.1, (24, 30)).astype(np.float32)
+    tool = np.zeros(depth.shape, bool)
+    tool[0:14, 10:17] = True  # a shaft entering from the top border
+    depth[tool] = rng.uniform(0.05, 0.06, int(tool.sum()))
+    depth[0:5, 10:17] = 0.0  # its end at the border has no depth
+    depth[20, 3] = 0.0  # a hole in the tissue, far from the tool
+    px = 3
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1)).astype(bool)
+    expected = depth.copy()
+    for y, x in zip(*np.nonzero(~tool)):
+        near = []
+        for dy in range(-px, px + 1):
+            for dx in range(-px, px + 1):
+                v, u = y + dy, x + dx
+                if disc[dy + px, dx + px] and 0 <= v < 24 and 0 <= u < 30 and tool[v, u] and depth[v, u] > 0:
+                    near.append(depth[v, u])
+        if near:
+            expected[y, x] = min(near)
+    out = spread_tool_depth(depth, tool, px)
+    np.testing.assert_array_equal(out, expected)
+    assert out.max() < 0.2  # no 3.4e38
+    np.testing.assert_array_equal(out[0, 5:8], depth[0, 5:8])  # border pixels next to the tool's holes keep theirs

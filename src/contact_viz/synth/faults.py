@@ -34,6 +34,8 @@ import cv2
 import numpy as np
 from PIL import Image
 
+from contact_viz.synth.sensors import spread_tool_depth
+
 __all__ = ["FAULT_KINDS", "Fault", "inject_fault", "read_truth_phases"]
 
 FAULT_KINDS = (
@@ -174,14 +176,7 @@ def _depth_fault(kind: str, depth: np.ndarray, mask: np.ndarray, severity: float
         depth[region & (noise >= cut)] = 0.0
         return depth
     if kind == "edge_bleeding":
-        reach = int(round(severity))
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
-        ring = (cv2.dilate(mask.astype(np.uint8), kernel) > 0) & ~mask
-        tool = np.where(mask & (depth > 0), depth, np.float32(np.inf)).astype(np.float32)
-        spread = cv2.erode(tool, kernel)
-        take = ring & np.isfinite(spread)
-        depth[take] = spread[take]
-        return depth
+        return spread_tool_depth(depth, mask, int(round(severity)))
     if kind == "depth_scale":
         valid = depth > 0
         if severity == 0:  # disparity (px) read as depth (m)

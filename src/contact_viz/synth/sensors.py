@@ -33,6 +33,29 @@ def manual_labels(contact: np.ndarray, jitter_frames: int, rng: np.random.Genera
     return labels
 
 
+_NO_TOOL_DEPTH = np.float32(np.finfo(np.float32).max)  # "no tool depth here"; also what cv2.erode pads with
+
+
+def spread_tool_depth(depth_m: np.ndarray, tool: np.ndarray, px: int) -> np.ndarray:
+    """``depth_m`` (H, W) float m, 0 = hole, with the tool's depth bled ``px`` px past its silhouette:
+    every background pixel within ``px`` (elliptic disc) of a tool pixel with depth takes the smallest
+    such tool depth; pixels with no tool depth within reach keep theirs. Returns a new array.
+
+    (cv2.erode pads the image with FLT_MAX, not inf: with inf as "no tool depth", a pixel at the image
+    border whose tool neighbours are all holes took 3.4e38 m.)
+    """
+    out = np.array(depth_m, copy=True)
+    tool = np.asarray(tool, dtype=bool)
+    if px <= 0 or not tool.any():
+        return out
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1, 2 * px + 1))
+    tool_depth = np.where(tool & (out > 0), out, _NO_TOOL_DEPTH).astype(np.float32)
+    spread = cv2.erode(tool_depth, kernel)
+    take = ~tool & (spread < _NO_TOOL_DEPTH)
+    out[take] = spread[take]
+    return out
+
+
 _NOISE_COARSE_DIV = 8  # the smooth part of the disparity noise varies over this many px, px
 _NOISE_FINE_DIV = 2  # the fine part of the disparity noise varies over this many px, px
 _NOISE_COARSE_WEIGHT, _NOISE_FINE_WEIGHT = 0.8, 0.6  # relative std of the two parts (normalized to 1 in total)
@@ -77,12 +100,7 @@ def stereo_depth(
     # Edge fattening: the nearer tool surface spreads a little over the background.
     fatten = max(1, round(params.edge_fattening_px * scale)) if params.edge_fattening_px > 0 else 0
     if fatten:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * fatten + 1, 2 * fatten + 1))
-        ring = (cv2.dilate(tool_left.astype(np.uint8), kernel) > 0) & ~tool_left
-        tool_depth = np.where(tool_left & (depth > 0), depth, np.float32(np.inf)).astype(np.float32)
-        spread = cv2.erode(tool_depth, kernel)
-        take = ring & np.isfinite(spread)
-        depth[take] = spread[take]
+        depth = spread_tool_depth(depth, tool_left, fatten)
 
     holes = ~hit
     # Left-right occlusion: a left pixel's scene point is hidden behind something nearer in the right view.
