@@ -128,6 +128,58 @@ def test_band_distances_against_brute_force():
             np.testing.assert_allclose(band_d[i], expected, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_ring_depth_integrals_against_opencv(dtype):
+    """Bit-equal to what patch.py did before the kernel: subtract, mask the valid depth, two cv2.integral."""
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        shape = (int(rng.integers(3, 50)), int(rng.integers(3, 70)))
+        inner = random_mask(rng, shape)
+        outer = _dilate_disc(inner, float(rng.uniform(1, 6)))
+        depth = rng.uniform(0.02, 0.2, shape).astype(dtype)
+        depth[rng.random(shape) < 0.1] = np.nan
+        depth[rng.random(shape) < 0.05] = 0.0
+        depth[rng.random(shape) < 0.05] = -np.inf
+        ring = cv2.subtract(outer, inner)
+        with np.errstate(invalid="ignore"):
+            ok = (ring != 0) & np.isfinite(depth) & (depth > 0)
+        sums, counts = kernels.ring_depth_integrals(outer, inner, depth)
+        np.testing.assert_array_equal(sums, cv2.integral(np.where(ok, depth, dtype(0)), sdepth=cv2.CV_64F))
+        np.testing.assert_array_equal(counts, cv2.integral(ok.view(np.uint8), sdepth=cv2.CV_32S))
+    with pytest.raises(ValueError):
+        kernels.ring_depth_integrals(np.zeros((4, 5), np.uint8), np.zeros((4, 6), np.uint8), np.ones((4, 5)))
+
+
+def test_reject_bled_against_numpy():
+    """The bleeding test's rule, per band pixel, against its NumPy form (window means from a brute-force loop)."""
+    rng = np.random.default_rng(9)
+    shape = (30, 40)
+    for half, step_m in ((1, 0.004), (4, 0.01), (15, 0.004)):
+        beyond = (rng.random(shape) < 0.3).astype(np.uint8)
+        depth = rng.uniform(0.05, 0.1, shape)
+        sums, counts = kernels.ring_depth_integrals(beyond, np.zeros(shape, np.uint8), depth)
+        band_flat = np.flatnonzero(rng.random(shape) < 0.4).astype(np.int64)
+        n = band_flat.size
+        tool_mean = rng.uniform(0.03, 0.08, n)
+        tool_mean[rng.random(n) < 0.1] = np.nan
+        band_d = rng.uniform(-0.01, 0.05, n)
+        band_d[rng.random(n) < 0.1] = np.nan
+        beyond_mean = np.full(n, np.nan)
+        for i, flat in enumerate(band_flat):
+            y, x = divmod(int(flat), shape[1])
+            window = (slice(max(y - half, 0), y + half + 1), slice(max(x - half, 0), x + half + 1))
+            if beyond[window].any():
+                beyond_mean[i] = depth[window][beyond[window] == 1].mean()
+        step = beyond_mean - tool_mean
+        with np.errstate(invalid="ignore"):
+            bled = (step >= step_m) & (band_d < step / 2)
+        expected = np.where(bled, np.nan, band_d)
+        got = band_d.copy()
+        assert kernels.reject_bled(sums, counts, band_flat, got, tool_mean, half, step_m) == bled.sum() > 0
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-15)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+
+
 def test_band_window_sums_against_brute_force():
     rng = np.random.default_rng(4)
     shape = (25, 33)

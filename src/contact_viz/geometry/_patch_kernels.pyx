@@ -300,3 +300,97 @@ def window_members(
                 m += 1
             i += 1
     return members_arr[:m].copy()
+
+
+def ring_depth_integrals(
+    const unsigned char[:, ::1] outer,
+    const unsigned char[:, ::1] inner,
+    const depth_t[:, :] depth_m,
+):
+    """Integrals of the valid depth and of its count over the pixels in ``outer`` but not in ``inner``.
+
+    ``outer``, ``inner``: (h, w) uint8 0/1 masks; ``depth_m``: the (h, w) depth crop (float32 or
+    float64, m; valid = finite and > 0; rows contiguous). Returns ``(sum_int, cnt_int)``: the
+    (h+1, w+1) float64 and int32 integral images (cv2.integral's layout and order) of
+    ``where(outer & ~inner & valid, depth, 0)`` and of ``outer & ~inner & valid``: in one pass
+    what patch.py's bleeding test did with a subtraction, three comparisons, a select and two
+    cv2.integral calls.
+    """
+    cdef Py_ssize_t height = outer.shape[0], width = outer.shape[1]
+    cdef Py_ssize_t y, x
+    cdef double d, row_sum
+    cdef int row_cnt, take
+    cdef const unsigned char *outer_row
+    cdef const unsigned char *inner_row
+    cdef const depth_t *depth_row
+    cdef double *sum_above
+    cdef double *sum_row
+    cdef int *cnt_above
+    cdef int *cnt_row
+    _check_same_shape(outer, inner, depth_m)
+    if depth_m.strides[1] != sizeof(depth_t):
+        raise ValueError("depth_m must be contiguous along its rows")
+    sum_arr = np.empty((height + 1, width + 1), np.float64)
+    cnt_arr = np.empty((height + 1, width + 1), np.int32)
+    cdef double[:, ::1] sums = sum_arr
+    cdef int[:, ::1] cnts = cnt_arr
+    with nogil:
+        for x in range(width + 1):
+            sums[0, x] = 0.0
+            cnts[0, x] = 0
+        for y in range(height):
+            outer_row = &outer[y, 0]
+            inner_row = &inner[y, 0]
+            depth_row = &depth_m[y, 0]
+            sum_above = &sums[y, 0]
+            sum_row = &sums[y + 1, 0]
+            cnt_above = &cnts[y, 0]
+            cnt_row = &cnts[y + 1, 0]
+            sum_row[0] = 0.0
+            cnt_row[0] = 0
+            row_sum = 0.0
+            row_cnt = 0
+            for x in range(width):
+                d = depth_row[x]
+                take = outer_row[x] != 0 and inner_row[x] == 0 and isfinite(d) and d > 0.0
+                row_sum += d if take else 0.0
+                row_cnt += take
+                sum_row[x + 1] = sum_above[x + 1] + row_sum
+                cnt_row[x + 1] = cnt_above[x + 1] + row_cnt
+    return sum_arr, cnt_arr
+
+
+def reject_bled(
+    const double[:, ::1] beyond_sum_int,
+    const int[:, ::1] beyond_cnt_int,
+    const long long[::1] band_flat,
+    double[::1] band_d,
+    const double[::1] tool_mean,
+    Py_ssize_t half,
+    double step_m,
+):
+    """The patch's bleeding test in one pass over the band pixels; returns how many it rejected.
+
+    For band pixel i with a window (2*half+1)^2 around it (clipped to the crop) holding at least one
+    pixel of the integrals ``beyond_*_int`` (:func:`ring_depth_integrals`): ``step = beyond mean -
+    tool_mean[i]``; ``band_d[i]`` is set to NaN (in place) when ``step >= step_m`` and
+    ``band_d[i] < step / 2``. NaN never passes a comparison (as in NumPy).
+    """
+    cdef Py_ssize_t height = beyond_sum_int.shape[0] - 1, width = beyond_sum_int.shape[1] - 1
+    cdef Py_ssize_t n = band_flat.shape[0], i
+    cdef int count, rejected = 0
+    cdef double step
+    cdef _Corners corners
+    if band_d.shape[0] != n or tool_mean.shape[0] != n:
+        raise ValueError(f"band_d and tool_mean must have one value per band pixel ({n})")
+    with nogil:
+        for i in range(n):
+            corners = _window_corners(band_flat[i], height, width, half)
+            count = _window_count(&beyond_cnt_int[0, 0], corners)
+            if count < 1:
+                continue
+            step = _window_sum(&beyond_sum_int[0, 0], corners) / count - tool_mean[i]
+            if step >= step_m and band_d[i] < step / 2:
+                band_d[i] = NAN
+                rejected += 1
+    return rejected

@@ -345,11 +345,10 @@ def _build_layers(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     if params.reject_bleeding:
         # The tissue beyond the band: background pixels within bleed_beyond_px of the band's outer edge
         # (dilating the small disc, not the tool by the whole reach: 3x cheaper at 1080p).
-        beyond_u8 = cv2.subtract(_dilate_disc(far_u8, params.bleed_beyond_px), far_u8)
-        with np.errstate(invalid="ignore"):
-            ok = (beyond_u8 != 0) & np.isfinite(depth_c) & (depth_c > 0)
-        beyond_sum_int = cv2.integral(np.where(ok, depth_c, depth_c.dtype.type(0)), sdepth=cv2.CV_64F)
-        beyond_cnt_int = cv2.integral(ok.view(np.uint8), sdepth=cv2.CV_32S)
+        # One compiled pass for both integrals, and the test itself in another (reject_bled): the test's
+        # own work 0.60 instead of 1.05 ms CPU per 1080p frame (bench_patch frames, interleaved, median).
+        beyond_sum_int, beyond_cnt_int = _kernels.ring_depth_integrals(
+            _dilate_disc(far_u8, params.bleed_beyond_px), far_u8, depth_c)
     by, bx = np.divmod(band_flat, tool_u8.shape[1])
     return _Layers(
         shape=shape, origin_yx=(y0, x0), crop_shape=tool_u8.shape, layer_ids=layer_ids, depth_c=depth_c,
@@ -375,13 +374,9 @@ def _band_distances(layers: _Layers, n1: int, tau_tool: int) -> tuple[np.ndarray
                                                 layers.band_valid, layers.depth_c, half, tau_tool)
     if layers.beyond_sum_int is None:
         return band_d, tool_mean, 0
-    _, beyond_mean = _kernels.band_distances(layers.beyond_sum_int, layers.beyond_cnt_int, layers.band_flat,
-                                             layers.band_valid, layers.depth_c, half, 1)
-    step = beyond_mean - tool_mean
-    with np.errstate(invalid="ignore"):
-        bled = (step >= layers.bleed_step_m) & (band_d < step / 2)
-    band_d[bled] = np.nan
-    return band_d, tool_mean, int(bled.sum())
+    n_bled = _kernels.reject_bled(layers.beyond_sum_int, layers.beyond_cnt_int, layers.band_flat, band_d,
+                                  tool_mean, half, layers.bleed_step_m)
+    return band_d, tool_mean, n_bled
 
 
 class _Scores:
