@@ -70,10 +70,12 @@ class SGBMParams:
     min_disparity: int = 0  # smallest disparity searched, px
     block_size: int | None = checked(None, ge=1, odd=True)  # matching block side, px (odd, >= 3); None = from the width
     # when block_size is None: block = width / this, as an odd number >= 3
-    width_per_block_px: float = checked(320.0, gt=0)
+    # (128: 5 px at 640, 15 px at 1920; issue 13 chose it and uniqueness 15 on the synthetic study's training
+    # sessions, band pixels within 3 mm of the true depth; Middlebury within 2 px 95.8% -> 94.8%: docs/depth.md)
+    width_per_block_px: float = checked(128.0, gt=0)
     p1_factor: int = checked(8, gt=0)  # P1 = p1_factor * channels * block^2: penalty for a 1 px disparity change
     p2_factor: int = 32  # P2 = p2_factor * channels * block^2: penalty for larger disparity jumps (> p1_factor)
-    uniqueness_ratio: int = 10  # best cost must beat the second best by this margin, %
+    uniqueness_ratio: int = 15  # best cost must beat the second best by this margin, %
     speckle_window_size: int = 100  # largest connected speckle region removed, px (0 = no speckle filter)
     speckle_range: int = 2  # largest disparity step inside one connected region, px
     disp12_max_diff: int = 1  # OpenCV's built-in left-right tolerance, px (-1 = off)
@@ -85,10 +87,17 @@ class SGBMParams:
     tool_mask_aware: bool = True  # match the tissue with the tool removed (inpainted) from both views
     tool_margin_px: int = checked(1, ge=0)  # the tool region removed grows by this in both views, px
     occlusion_check: bool = True  # drop left pixels whose match lies behind the tool in the right view
+    # also inpaint, right of the tool in the right view, the tissue only the right camera sees (_hidden_strips)
+    hidden_strip: bool = True
+    strip_probe_near_px: int = checked(8, ge=1)  # the tissue's disparity beside the tool is read from this far ...
+    strip_probe_far_px: int = checked(16, ge=1)  # ... to this far right of the tool, px
     tool_rows_pad_px: int = checked(16, ge=0)  # the tool's disparity is matched on its bbox grown by this, px
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.strip_probe_far_px < self.strip_probe_near_px:
+            raise ValueError(f"SGBMParams needs strip_probe_near_px <= strip_probe_far_px, got "
+                             f"{self.strip_probe_near_px} and {self.strip_probe_far_px}")
         if self.p2_factor <= self.p1_factor:
             raise ValueError(
                 f"SGBMParams needs p1_factor < p2_factor, got {self.p1_factor} and {self.p2_factor}"
@@ -131,16 +140,11 @@ def _as_pair(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return np.ascontiguousarray(left), np.ascontiguousarray(right)
 
 
-def _match(left: np.ndarray, right: np.ndarray, p: SGBMParams) -> np.ndarray:
-    """StereoSGBM disparity of ``left`` against ``right`` (H, W) float32 px, NaN = no match.
-
-    The pair is padded on the left by the search range (edge pixels repeated) so that pixels
-    near the left border can match; the padding is cropped off the result.
-    """
-    channels = 1 if left.ndim == 2 else left.shape[2]
+def _matcher(p: SGBMParams, channels: int, min_disparity: int):
+    """OpenCV's StereoSGBM for parameters ``p`` searching ``min_disparity .. + num_disparities - 1``."""
     area = channels * p.block_size * p.block_size
-    matcher = cv2.StereoSGBM_create(
-        minDisparity=p.min_disparity,
+    return cv2.StereoSGBM_create(
+        minDisparity=min_disparity,
         numDisparities=p.num_disparities,
         blockSize=p.block_size,
         P1=p.p1_factor * area,
@@ -151,6 +155,15 @@ def _match(left: np.ndarray, right: np.ndarray, p: SGBMParams) -> np.ndarray:
         speckleRange=p.speckle_range,
         mode=_MODES[p.mode],
     )
+
+
+def _match(left: np.ndarray, right: np.ndarray, p: SGBMParams) -> np.ndarray:
+    """StereoSGBM disparity of ``left`` against ``right`` (H, W) float32 px, NaN = no match.
+
+    The pair is padded on the left by the search range (edge pixels repeated) so that pixels
+    near the left border can match; the padding is cropped off the result.
+    """
+    matcher = _matcher(p, 1 if left.ndim == 2 else left.shape[2], p.min_disparity)
     pad = p.num_disparities + max(p.min_disparity, 0)
     left_p = cv2.copyMakeBorder(left, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
     right_p = cv2.copyMakeBorder(right, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
@@ -256,6 +269,37 @@ def _tool_disparity(left: np.ndarray, right: np.ndarray, tool: np.ndarray, p: SG
     return out
 
 
+def _hidden_strips(tool: np.ndarray, tool_disparity_px: np.ndarray, around_disparity_px: np.ndarray,
+                   margin_px: int, probe_px: tuple[int, int]) -> np.ndarray:
+    """Right-view pixels right of the tool that only the right camera sees: (H, W) bool.
+
+    Per row, right of each run of tool pixels ending at column x: from x - d_tool (the run's end in the
+    right view) to x + margin_px - d_bg, where d_bg is the median finite disparity of the non-tool
+    pixels probe_px[0]..probe_px[1] px right of x (rows y-1..y+1) in ``around_disparity_px``. The left
+    view's tool region ends at x + margin_px; with this strip, the right view's ends where the tissue
+    next to it lies (at d_bg), so the inpainted regions' edges line up at the tissue's disparity
+    instead of the tool's. Runs without a background disparity get no strip.
+    """
+    height, width = tool.shape
+    ends = tool.copy()
+    ends[:, :-1] &= ~tool[:, 1:]
+    out = np.zeros((height, width), bool)
+    lo_px, hi_px = probe_px
+    for y, x in zip(*np.nonzero(ends)):
+        rows = slice(max(y - 1, 0), y + 2)
+        cols = slice(min(x + lo_px, width), min(x + hi_px + 1, width))
+        around = around_disparity_px[rows, cols][~tool[rows, cols]]
+        around = around[np.isfinite(around)]
+        if around.size == 0:
+            continue
+        start = int(np.floor(x - tool_disparity_px[y, x]))
+        stop = int(np.floor(x + margin_px - float(np.median(around)))) + 1
+        start, stop = max(start, 0), min(stop, width)
+        if stop > start:
+            out[y, start:stop] = True
+    return out
+
+
 def _inpaint_pair(left: np.ndarray, right: np.ndarray, left_region: np.ndarray, right_region: np.ndarray):
     """Both views with their tool region filled from the surrounding background (OpenCV's Telea inpainting)."""
     radius = 3  # px of background each filled pixel is drawn from
@@ -283,7 +327,10 @@ def masked_sgbm_disparity(
     1. The tool's disparity: plain :func:`sgbm_disparity` on a crop around the tool (inside the
        tool it is accurate); holes on the tool are filled from the nearest matched tool pixel.
     2. The right-view tool region from it (:func:`right_view_tool_mask`).
-    3. :func:`sgbm_disparity` on the pair with both tool regions inpainted.
+    3. :func:`sgbm_disparity` on the pair with both tool regions inpainted; with ``hidden_strip``, the
+       right view's region also covers, right of the tool, the tissue that only the right camera sees
+       (:func:`_hidden_strips`): otherwise the edges of the two inpainted regions line up at the tool's
+       disparity and drag it 2-4 px over the tissue right of the tool (docs/depth.md).
     4. Result: step 1 on the (left) tool, step 3 elsewhere; with ``occlusion_check``, a left
        pixel whose match falls in the right-view tool region (hidden behind the tool in the right
        view: no depth can be measured there) is NaN.
@@ -307,18 +354,22 @@ def masked_sgbm_disparity(
         right_region = right_view_tool_mask(tool, filled, p.tool_margin_px)
     else:  # the tool matched nowhere: its right-view place is unknown; only the left view is masked
         right_region = np.zeros_like(tool)
-    left_m, right_m = _inpaint_pair(left, right, left_region, right_region)
+    inpaint_right = right_region
+    if p.hidden_strip and known.any():
+        inpaint_right = right_region | _hidden_strips(tool, filled, tool_disp, p.tool_margin_px,
+                                                      (p.strip_probe_near_px, p.strip_probe_far_px))
+    left_m, right_m = _inpaint_pair(left, right, left_region, inpaint_right)
     disparity = sgbm_disparity(left_m, right_m, p)
     disparity[left_region] = np.nan  # the margin beside the tool was inpainted: not measured
     disparity[tool] = tool_disp[tool]
-    if p.occlusion_check and right_region.any():
+    if p.occlusion_check and inpaint_right.any():
         height, width = tool.shape
         outside = ~tool & np.isfinite(disparity)
         ys, xs = np.nonzero(outside)
         col = np.rint(xs - disparity[ys, xs]).astype(np.int64)
         inside = (col >= 0) & (col < width)
         hidden = np.zeros(ys.shape, bool)
-        hidden[inside] = right_region[ys[inside], col[inside]]
+        hidden[inside] = inpaint_right[ys[inside], col[inside]]  # behind the tool, or inpainted: not measured
         disparity[ys[hidden], xs[hidden]] = np.nan
     return disparity
 
