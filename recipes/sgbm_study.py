@@ -11,9 +11,14 @@ evaluated on the four (what `contact-viz fit` and `evaluate` do), and Table 1 is
 * rendered: the session's depth/ (synth's stereo-like depth: disparity noise, the tool's depth
   bled 1 px past its edge at 640 px, holes; the stand-in for FoundationStereo);
 * SGBM: depth/ removed (``DIR/stereo/<name>``, hard links of the other files), depth from the
-  stereo pair by OpenCV SGBM as before issue 13 (``SGBMParams(tool_mask_aware=False)``);
-* SGBM, mask-aware: the same pair matched knowing the tool mask (the default since issue 13;
-  contact_viz.geometry.stereo.masked_sgbm_disparity).
+  stereo pair by OpenCV SGBM as before issue 13 (no mask; 3 px blocks at 640 px, uniqueness 10);
+* SGBM, mask-aware, 3-way: the same pair matched knowing the tool mask, as issue 13 first did it
+  (no hidden strip; 3 px blocks, uniqueness 10);
+* SGBM, mask-aware: the default (contact_viz.geometry.stereo.masked_sgbm_disparity with the hidden
+  strip, 5 px blocks at 640 px, uniqueness 15).
+
+Then the same models scored against the generator's physical contact (truth.csv), and how many
+frames are in contact but labelled no contact (touches under 2 N).
 
 Then the band error profile on the test sessions (every ``--profile-step``-th frame): the depth
 error of background pixels by their distance from the mask edge (1..15 px; median and 10th

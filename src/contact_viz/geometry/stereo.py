@@ -332,8 +332,8 @@ def masked_sgbm_disparity(
        (:func:`_hidden_strips`): otherwise the edges of the two inpainted regions line up at the tool's
        disparity and drag it 2-4 px over the tissue right of the tool (docs/depth.md).
     4. Result: step 1 on the (left) tool, step 3 elsewhere; with ``occlusion_check``, a left
-       pixel whose match falls in the right-view tool region (hidden behind the tool in the right
-       view: no depth can be measured there) is NaN.
+       pixel whose match falls in the right view's inpainted region (hidden behind the tool in the
+       right view: no depth can be measured there; or in the strip, where it came out too wide) is NaN.
 
     ``tool_mask`` (H, W) bool or integer (nonzero = tool). Returns (H, W) float32 px, NaN where no
     reliable match. An empty mask gives :func:`sgbm_disparity`.
