@@ -21,11 +21,13 @@ Library code: no typer, no printing.
 
 from __future__ import annotations
 
-import functools
 import math
+import functools
 import time
 import warnings
+from collections import deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,10 +35,11 @@ import cv2
 import numpy as np
 
 from contact_viz.viz import rerun_log
+from contact_viz.checks.frame import FrameMeasures
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
 from contact_viz.errors import NoPatchWarning, SessionError
-from contact_viz.pipeline.check import load_grey
+from contact_viz.pipeline.check import grey_step, load_grey
 from contact_viz.pipeline.extract import iter_frame_results, run_config
 from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams, check_fields, checked, to_dict
@@ -115,7 +118,9 @@ class RunSummary:
     elapsed_s: float  # wall time of the run, s
     wait_s: float  # waiting for the next frame: mask + depth decoding (background thread) and the patch, s
     image_wait_s: float  # waiting for the images (read and decoded in their own thread), s
-    prepare_s: float  # point cloud, patch geometry, depth preview, posterior, diagnostics, s
+    # point cloud, patch geometry, depth preview, posterior, the checks (their measurements run ahead in a thread:
+    # waiting for them counts here), s
+    prepare_s: float
     log_s: float  # Rerun calls and flushes, s
     diagnostic_ranges: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # code -> (first, last) frame runs
 
@@ -175,6 +180,8 @@ class _Images:
     right_i420: np.ndarray | None
     has_right: bool
     notes: tuple[str, ...]
+    left_grey: np.ndarray | None = None  # the images the checks read (contact_viz.pipeline.check.load_grey)
+    right_grey: np.ndarray | None = None
 
 
 class _ImageReader:
@@ -184,9 +191,12 @@ class _ImageReader:
         self.session = session
         self.options = options
         self.with_right = with_right
+        self.grey_step = grey_step(session, options.diagnostics)
 
     def _read(self, side: str, path: Path, want_colors: bool, step: int = 1):
-        """(jpeg bytes, raw rgb, I420 frame, colour image) of one image; raises SessionError on a problem.
+        """(jpeg bytes, raw rgb, I420 frame, colour image, decoded RGB) of one image; raises SessionError on
+        a problem. The decoded RGB (full size, rectified; None for JPEG files read without a full decode)
+        feeds the image checks.
 
         ``step`` (video only): the frame to encode is the image at 1/step of its size."""
         height, width = self.session.image_size
@@ -199,7 +209,7 @@ class _ImageReader:
             if bgr.shape[:2] != (-(-height // step), -(-width // step)):
                 raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                          f"found about {bgr.shape[0] * step}x{bgr.shape[1] * step}")
-            return None, None, rgb_to_i420(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)), None
+            return None, None, rgb_to_i420(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)), None, None
         if opts.images == "jpeg" and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
             try:
                 data = path.read_bytes()
@@ -217,7 +227,7 @@ class _ImageReader:
                     raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                              f"found about {bgr.shape[0] * n}x{bgr.shape[1] * n}")
                 colors = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-            return data, None, None, colors
+            return data, None, None, colors, None
         rgb = read_rgb(path)
         if rectification is not None:  # raw recordings: show the rectified view the depth belongs to
             try:
@@ -228,23 +238,23 @@ class _ImageReader:
             raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                      f"found {rgb.shape[0]}x{rgb.shape[1]}")
         if opts.images == "raw":
-            return None, rgb, None, rgb
+            return None, rgb, None, rgb, rgb
         if opts.images == "video":
             n = opts.color_reduction  # the point colours need no more than a 1/n-size image
             colors = np.ascontiguousarray(rgb[::n, ::n]) if want_colors else None
-            if step > 1:
-                rgb = cv2.resize(rgb, (-(-width // step), -(-height // step)), interpolation=cv2.INTER_AREA)
-            return None, None, rgb_to_i420(rgb), colors
+            small = rgb if step == 1 else cv2.resize(rgb, (-(-width // step), -(-height // step)),
+                                                      interpolation=cv2.INTER_AREA)
+            return None, None, rgb_to_i420(small), colors, rgb
         ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
                                    [cv2.IMWRITE_JPEG_QUALITY, opts.jpeg_quality])
         if not ok:
             raise SessionError(path, f"could not JPEG-encode the {side} image")
-        return encoded.tobytes(), None, None, rgb
+        return encoded.tobytes(), None, None, rgb, rgb
 
     def load(self, index: int) -> _Images:
         stem = self.session.stems[index]
         notes = []
-        left = right = (None, None, None, None)
+        left = right = (None, None, None, None, None)
         try:
             left_path = self.session.image_path("left", index)
             if left_path is None:
@@ -258,8 +268,11 @@ class _ImageReader:
                 right = self._read("right", right_path, False, self.options.right_step)
             except SessionError as exc:
                 notes.append(f"frame {index}: right image not shown: {exc}")
+        # the checks' grey images: from the decoded RGB, or a reduced-size decode of a JPEG file
+        greys = [load_grey(self.session, side, index, self.grey_step, rgb=read[4]) if use else None
+                 for side, read, use in (("left", left, True), ("right", right, right_path is not None))]
         return _Images(left[0], left[1], left[2], left[3], right[0], right[1], right[2], right_path is not None,
-                       tuple(notes))
+                       tuple(notes), *greys)
 
 
 class _VideoStreams:
@@ -299,9 +312,56 @@ class _VideoStreams:
 # --------------------------------------------------------------------------------------------
 
 
-def _grey_pair(session: Session, with_right: bool, index: int):
-    """(left, right) grey images of a frame for the image checks (None where missing or unreadable)."""
-    return load_grey(session, "left", index), load_grey(session, "right", index) if with_right else None
+@dataclass(frozen=True)
+class _Prepared:
+    """What a frame shows besides its images, computed ahead of the logging (:func:`_prepare`)."""
+
+    measures: FrameMeasures | None  # the checks' measurements (None = bad frame)
+    depth_u16: np.ndarray | None = None  # decimated depth
+    depth_layers: np.ndarray | None = None  # decimated patch layers
+    cloud: object | None = None  # contact_viz.geometry.pointcloud.Cloud, or None without points
+    geometry: object | None = None  # contact_viz.geometry.pointcloud.PatchGeometry
+
+
+def _prepare(result, shown: _Images, tracker: DiagnosticsTracker, K: np.ndarray, options: DebuggerOptions
+             ) -> _Prepared:
+    """The pure per-frame work of the viewer: the checks' measurements, the depth preview, the cloud, the patch's 3D."""
+    measures = tracker.measure(result, shown.left_grey, shown.right_grey, evidence=True)
+    frame, patch = result.frame, result.patch
+    if patch is None:
+        return _Prepared(measures)
+    step = options.depth_step
+    return _Prepared(
+        measures,
+        depth_preview(frame.depth_m, step, options.depth_units_per_m),
+        np.ascontiguousarray(patch.layer_ids[::step, ::step]),
+        depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy, params=options.cloud)
+        if options.points else None,
+        patch_geometry(frame.depth_m, K, patch, options.patch_params))
+
+
+def _staged(results, images, prepare: Callable, pool: ThreadPoolExecutor, waits: list[float], ahead: int = 2):
+    """Yield (frame result, images, future of its :class:`_Prepared`) in frame order.
+
+    ``prepare(result, images)`` (pure: the checks' measurements, the cloud, ...) of up to ``ahead``
+    frames runs in ``pool`` while the caller logs earlier frames (it is about half of a 1080p frame's
+    work in the run loop's thread otherwise). Time spent waiting for the results and for the images
+    is added to ``waits[0]`` and ``waits[1]``."""
+    pending: deque = deque()
+    while True:
+        t0 = time.perf_counter()
+        result = next(results, None)
+        t1 = time.perf_counter()
+        waits[0] += t1 - t0
+        if result is None:
+            break
+        shown = next(images)
+        waits[1] += time.perf_counter() - t1
+        pending.append((result, shown, pool.submit(prepare, result, shown)))
+        if len(pending) > ahead:
+            yield pending.popleft()
+    while pending:
+        yield pending.popleft()
 
 
 def _pose_samples(session: Session, options: DebuggerOptions) -> np.ndarray | None:
@@ -372,22 +432,23 @@ def run_debugger(
     images = prefetched(reader.load, indices, options.prefetch, workers=options.image_workers,
                         thread_name="contact-viz-images")
     videos = _VideoStreams(session, rec, options, with_right) if options.images == "video" else None
-    greys = prefetched(functools.partial(_grey_pair, session, with_right), indices, options.prefetch,
-                       thread_name="contact-viz-grey")  # what the image checks read
+    prepare_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="contact-viz-prepare")
+    waits = [0.0, 0.0]  # waiting for the next frame's results, for its images, s
+    staged = _staged(results, images, functools.partial(_prepare, tracker=tracker, K=K, options=options),
+                     prepare_pool, waits)
     done = bad = 0
-    wait_s = image_wait_s = prepare_s = log_s = 0.0
+    prepare_s = log_s = 0.0
     interrupted = False
     try:
         while True:
-            t0 = time.perf_counter()
-            result = next(results, None)
-            if result is None:
+            item = next(staged, None)
+            if item is None:
                 break
-            t1 = time.perf_counter()
-            shown = next(images)
+            result, shown, prepared = item
             t2 = time.perf_counter()
             frame, patch = result.frame, result.patch
-            diag = tracker.update(result, *next(greys), evidence=True)
+            prepared = prepared.result()
+            diag = tracker.update(result, measures=prepared.measures, evidence=True)
             diagnostics = diag.fired
             posterior = predicted = None
             if stream is not None:
@@ -412,13 +473,12 @@ def run_debugger(
                     left_in_video=shown.left_i420 is not None,
                     right_in_video=shown.right_i420 is not None,
                     has_right=shown.has_right,
-                    depth_u16=depth_preview(frame.depth_m, step, options.depth_units_per_m),
+                    depth_u16=prepared.depth_u16,
                     depth_units_per_m=options.depth_units_per_m,
-                    depth_layers=np.ascontiguousarray(patch.layer_ids[::step, ::step]),
+                    depth_layers=prepared.depth_layers,
                     depth_window_xyxy=None if window is None else tuple(v / step for v in window),
-                    cloud=depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy,
-                                      params=options.cloud) if options.points else None,
-                    geometry=patch_geometry(frame.depth_m, K, patch, options.patch_params),
+                    cloud=prepared.cloud,
+                    geometry=prepared.geometry,
                     posterior=posterior,
                     predicted=predicted,
                     diagnostics=diagnostics,
@@ -436,8 +496,6 @@ def run_debugger(
             if done % options.flush_every == 0:
                 rec.flush()
             t4 = time.perf_counter()
-            wait_s += t1 - t0
-            image_wait_s += t2 - t1
             prepare_s += t3 - t2
             log_s += t4 - t3
             if progress is not None:
@@ -445,9 +503,10 @@ def run_debugger(
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        staged.close()
+        prepare_pool.shutdown(wait=True, cancel_futures=True)
         results.close()
         images.close()
-        greys.close()
         t5 = time.perf_counter()
         if videos is not None:
             videos.close()
@@ -464,8 +523,8 @@ def run_debugger(
         diagnostic_ranges=tracker.ranges(),
         interrupted=interrupted,
         elapsed_s=time.perf_counter() - started,
-        wait_s=wait_s,
-        image_wait_s=image_wait_s,
+        wait_s=waits[0],
+        image_wait_s=waits[1],
         prepare_s=prepare_s,
         log_s=log_s,
     )
