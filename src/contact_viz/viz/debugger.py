@@ -22,12 +22,9 @@ Library code: no typer, no printing.
 from __future__ import annotations
 
 import math
-import functools
 import time
 import warnings
-from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,9 +115,7 @@ class RunSummary:
     elapsed_s: float  # wall time of the run, s
     wait_s: float  # waiting for the next frame: mask + depth decoding (background thread) and the patch, s
     image_wait_s: float  # waiting for the images (read and decoded in their own thread), s
-    # point cloud, patch geometry, depth preview, posterior, the checks (their measurements run ahead in a thread:
-    # waiting for them counts here), s
-    prepare_s: float
+    prepare_s: float  # point cloud, patch geometry, depth preview, posterior, the checks, s
     log_s: float  # Rerun calls and flushes, s
     diagnostic_ranges: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # code -> (first, last) frame runs
 
@@ -325,7 +320,11 @@ class _Prepared:
 
 def _prepare(result, shown: _Images, tracker: DiagnosticsTracker, K: np.ndarray, options: DebuggerOptions
              ) -> _Prepared:
-    """The pure per-frame work of the viewer: the checks' measurements, the depth preview, the cloud, the patch's 3D."""
+    """The pure per-frame work of the viewer: the checks' measurements, the depth preview, the cloud, the patch's 3D.
+
+    (Run in the loop's thread: one frame ahead in a thread of its own it was slower, 20.4 against 22.5
+    frames/s on a 1080p JPEG session with --images jpeg, medians of 4 interleaved runs: the threads
+    contend for the GIL.)"""
     measures = tracker.measure(result, shown.left_grey, shown.right_grey, evidence=True)
     frame, patch = result.frame, result.patch
     if patch is None:
@@ -338,30 +337,6 @@ def _prepare(result, shown: _Images, tracker: DiagnosticsTracker, K: np.ndarray,
         depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy, params=options.cloud)
         if options.points else None,
         patch_geometry(frame.depth_m, K, patch, options.patch_params))
-
-
-def _staged(results, images, prepare: Callable, pool: ThreadPoolExecutor, waits: list[float], ahead: int = 2):
-    """Yield (frame result, images, future of its :class:`_Prepared`) in frame order.
-
-    ``prepare(result, images)`` (pure: the checks' measurements, the cloud, ...) of up to ``ahead``
-    frames runs in ``pool`` while the caller logs earlier frames (it is about half of a 1080p frame's
-    work in the run loop's thread otherwise). Time spent waiting for the results and for the images
-    is added to ``waits[0]`` and ``waits[1]``."""
-    pending: deque = deque()
-    while True:
-        t0 = time.perf_counter()
-        result = next(results, None)
-        t1 = time.perf_counter()
-        waits[0] += t1 - t0
-        if result is None:
-            break
-        shown = next(images)
-        waits[1] += time.perf_counter() - t1
-        pending.append((result, shown, pool.submit(prepare, result, shown)))
-        if len(pending) > ahead:
-            yield pending.popleft()
-    while pending:
-        yield pending.popleft()
 
 
 def _pose_samples(session: Session, options: DebuggerOptions) -> np.ndarray | None:
@@ -432,22 +407,20 @@ def run_debugger(
     images = prefetched(reader.load, indices, options.prefetch, workers=options.image_workers,
                         thread_name="contact-viz-images")
     videos = _VideoStreams(session, rec, options, with_right) if options.images == "video" else None
-    prepare_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="contact-viz-prepare")
-    waits = [0.0, 0.0]  # waiting for the next frame's results, for its images, s
-    staged = _staged(results, images, functools.partial(_prepare, tracker=tracker, K=K, options=options),
-                     prepare_pool, waits)
     done = bad = 0
-    prepare_s = log_s = 0.0
+    wait_s = image_wait_s = prepare_s = log_s = 0.0
     interrupted = False
     try:
         while True:
-            item = next(staged, None)
-            if item is None:
+            t0 = time.perf_counter()
+            result = next(results, None)
+            if result is None:
                 break
-            result, shown, prepared = item
+            t1 = time.perf_counter()
+            shown = next(images)
             t2 = time.perf_counter()
             frame, patch = result.frame, result.patch
-            prepared = prepared.result()
+            prepared = _prepare(result, shown, tracker, K, options)
             diag = tracker.update(result, measures=prepared.measures, evidence=True)
             diagnostics = diag.fired
             posterior = predicted = None
@@ -496,6 +469,8 @@ def run_debugger(
             if done % options.flush_every == 0:
                 rec.flush()
             t4 = time.perf_counter()
+            wait_s += t1 - t0
+            image_wait_s += t2 - t1
             prepare_s += t3 - t2
             log_s += t4 - t3
             if progress is not None:
@@ -503,8 +478,6 @@ def run_debugger(
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        staged.close()
-        prepare_pool.shutdown(wait=True, cancel_futures=True)
         results.close()
         images.close()
         t5 = time.perf_counter()
@@ -523,8 +496,8 @@ def run_debugger(
         diagnostic_ranges=tracker.ranges(),
         interrupted=interrupted,
         elapsed_s=time.perf_counter() - started,
-        wait_s=waits[0],
-        image_wait_s=waits[1],
+        wait_s=wait_s,
+        image_wait_s=image_wait_s,
         prepare_s=prepare_s,
         log_s=log_s,
     )
