@@ -309,7 +309,7 @@ class _VideoStreams:
 
 @dataclass(frozen=True)
 class _Prepared:
-    """What a frame shows besides its images, computed ahead of the logging (:func:`_prepare`)."""
+    """What a frame shows besides its images, computed before it is logged (:func:`_prepare`)."""
 
     measures: FrameMeasures | None  # the checks' measurements (None = bad frame)
     depth_u16: np.ndarray | None = None  # decimated depth
