@@ -27,14 +27,15 @@ from contact_viz.synth import PHANTOMS  # noqa: E402
 from contact_viz.synth.fault_study import (detection_table, flagged_frames, inject_and_check,  # noqa: E402
                                            make_session_job)
 from contact_viz.synth.faults import FAULT_KINDS  # noqa: E402
+from contact_viz.checks.params import DiagnosticParams  # noqa: E402
 from contact_viz.pipeline.check import check_session  # noqa: E402
 
 
 def _study(args):
-    session, work, seed = args
-    clean = check_session(session)
+    session, work, seed, params = args
+    clean = check_session(session, params=params)
     phantom = PHANTOMS.index(Path(session).name.split("_")[0])
-    outcomes = [inject_and_check(session, work, kind, seed=(seed * 10 + phantom) * 100 + k)
+    outcomes = [inject_and_check(session, work, kind, seed=(seed * 10 + phantom) * 100 + k, params=params)
                 for k, kind in enumerate(FAULT_KINDS)]
     return session, clean, outcomes
 
@@ -46,6 +47,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=84)
     parser.add_argument("--size", default="320x180")
     parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--analysis-width", type=int, default=DiagnosticParams().analysis_width_px,
+                        help="DiagnosticParams.analysis_width_px: the checks run on every n-th pixel above this width")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
     seeds = [int(s) for s in args.seeds.split(",")]
@@ -57,9 +60,11 @@ def main() -> None:
             sessions = list(pool.map(make_session_job, jobs))
             work = Path(tmp) / "work"
             work.mkdir()
-            results = list(pool.map(_study, [(s, work, job[2]) for s, job in zip(sessions, jobs)]))
+            params = DiagnosticParams(analysis_width_px=args.analysis_width)
+            results = list(pool.map(_study, [(s, work, job[2], params) for s, job in zip(sessions, jobs)]))
     outcomes = [o for _, _, os_ in results for o in os_]
-    print(f"{len(sessions)} sessions ({', '.join(phantoms)}; seeds {args.seeds}; {args.frames} frames at {args.size}), "
+    print(f"{len(sessions)} sessions ({', '.join(phantoms)}; seeds {args.seeds}; {args.frames} frames at {args.size}; "
+          f"checks at 1/{-(-width // args.analysis_width)} resolution), "
           f"{len(outcomes)} injected sessions, {time.perf_counter() - started:.0f} s\n")
     rows = detection_table(outcomes)
     print("| failure | approach: flagged / injected frames | contact: flagged / injected frames | "
@@ -82,8 +87,8 @@ def main() -> None:
         if clean.fired:
             print(f"  {Path(session).name}: " + "; ".join(f"{code} at {', '.join(f'{x}-{y}' for x, y in r)}"
                                                          for code, r in clean.fired.items()))
-    misses = [o for o in outcomes for ph in ("approach", "contact")
-              if len(o.flagged[ph]) < 0.9 * len(o.injected[ph])]
+    misses = [o for o in outcomes if any(len(o.flagged[ph]) < 0.9 * len(o.injected[ph])
+                                         for ph in ("approach", "contact"))]
     for o in misses[:20]:
         print(f"  below 90%: {o.kind} in {o.session} severity {o.severity:g}: "
               f"approach {len(o.flagged['approach'])}/{len(o.injected['approach'])}, "

@@ -5,7 +5,7 @@ Run by hand (it needs Debian's chromium and xvfb, `sudo apt-get install chromium
 scripts/bootstrap.sh does not install, and takes 2-4 minutes; it is not part of the test suite,
 which must not depend on a browser or on software rendering's timing):
 
-    .venv/bin/python benchmarks/check_viewers.py [SESSION] [--web] [--native] [--out docs/]
+    .venv/bin/python benchmarks/check_viewers.py [SESSION] [--web] [--native] [--out docs/] [--view-args "..."]
 
 Without SESSION it renders a small synthetic session (640x360, 40 frames). The web check runs
 `contact-viz SESSION --serve`, opens the printed URL in Chromium (software WebGL, SwiftShader) and
@@ -37,6 +37,7 @@ MIN_STD = 12.0  # standard deviation of the image pane's pixel values when a fra
 # where the default blueprint puts the left image, as fractions of the viewer window (x0, y0, x1, y1): the left
 # 60 % column, its top 47 %, of which the left image takes two thirds; a margin for the panels and titles
 LEFT_PANE = (0.03, 0.08, 0.36, 0.40)
+SETTLE_S = float(os.environ.get("CHECK_VIEWERS_SETTLE_S", "5"))  # wait after the first drawn frame, s
 TIMEOUT_S = 240.0  # give up after this long (software rendering on a busy 2-core machine is slow), s
 
 
@@ -80,7 +81,7 @@ def wait_for_frame(display: int, what: str, out: Path, proc: subprocess.Popen) -
         print(f"  {what} after {time.monotonic() - started:.0f} s: {colours} colours, std {std:.1f} in the image pane",
               flush=True)
         if drawn:
-            time.sleep(5)  # let the rest of the layout settle for the saved picture
+            time.sleep(SETTLE_S)  # let the rest of the layout settle for the saved picture
             Image.fromarray(grab(display)).save(out)
             print(f"{what}: a frame is drawn (screenshot {out})")
             return True
@@ -103,14 +104,14 @@ def contact_viz() -> list[str]:
     return [sys.executable, "-m", "contact_viz.cli"]
 
 
-def check_web(session: Path, display: int, env: dict, out: Path, profile: Path) -> bool:
+def check_web(session: Path, display: int, env: dict, out: Path, profile: Path, view_args: list[str]) -> bool:
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         print("web: chromium is not installed (Debian: apt-get install chromium)")
         return False
     grpc_port, web_port = 19876 + display, 19090 + display
     server = subprocess.Popen(contact_viz() + [str(session), "--serve", "--grpc-port", str(grpc_port),
-                                               "--web-port", str(web_port)],
+                                               "--web-port", str(web_port)] + view_args,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     browser = None
     try:
@@ -137,9 +138,9 @@ def check_web(session: Path, display: int, env: dict, out: Path, profile: Path) 
         stop(server)
 
 
-def check_native(session: Path, display: int, env: dict, out: Path, workdir: Path) -> bool:
+def check_native(session: Path, display: int, env: dict, out: Path, workdir: Path, view_args: list[str]) -> bool:
     rrd = workdir / "check.rrd"
-    subprocess.run(contact_viz() + [str(session), "--save", str(rrd)], check=True, env=env,
+    subprocess.run(contact_viz() + [str(session), "--save", str(rrd)] + view_args, check=True, env=env,
                    stdout=subprocess.DEVNULL)
     rerun = Path(sys.executable).with_name("rerun")
     viewer = subprocess.Popen([str(rerun) if rerun.exists() else "rerun", str(rrd), "--renderer", "vulkan"],
@@ -156,6 +157,7 @@ def main() -> None:
     parser.add_argument("--web", action="store_true", help="check the web viewer (default: both)")
     parser.add_argument("--native", action="store_true", help="check the native viewer (default: both)")
     parser.add_argument("--out", type=Path, default=Path("docs"), help="directory for the screenshots")
+    parser.add_argument("--view-args", default="", help='more options of `contact-viz SESSION`, e.g. "--start 28 --end 36"')
     args = parser.parse_args()
     both = not (args.web or args.native)
     if shutil.which("Xvfb") is None:
@@ -181,9 +183,9 @@ def main() -> None:
         try:
             time.sleep(2)
             if args.web or both:
-                results["web"] = check_web(session, display, env, args.out, workdir / "chromium")
+                results["web"] = check_web(session, display, env, args.out, workdir / "chromium", args.view_args.split())
             if args.native or both:
-                results["native"] = check_native(session, display, env, args.out, workdir)
+                results["native"] = check_native(session, display, env, args.out, workdir, args.view_args.split())
         finally:
             stop(xvfb)
     print("; ".join(f"{k}: {'frame drawn' if v else 'FAILED'}" for k, v in results.items()))

@@ -92,6 +92,44 @@ def test_each_failure_moves_its_measure():
     assert d.edge_support < 0.5 < clean.edge_support and d.outside_tool_fraction > 0.3
 
 
+def _doubled(mask, depth, left, right):
+    """The same scene at twice the resolution: every pixel repeated 2 x 2 (so shrinking it back is exact)."""
+    up = lambda a: np.repeat(np.repeat(a, 2, axis=0), 2, axis=1)  # noqa: E731
+    return up(mask), up(depth), up(left), up(right)
+
+
+@pytest.mark.parametrize("case", [{}, {"bleed_px": 4}, {"shift_depth": 5}, {"scale": 1.3}, {"drift": 6}])
+def test_checks_at_half_resolution_measure_what_full_resolution_measures(case):
+    """A frame twice the analysis width is measured on every 2nd pixel: on a scene doubled by repeating
+    pixels, the measures equal those of the original scene at full resolution (areas in the doubled
+    image's pixels), and the contour evidence lands on the doubled image's pixels."""
+    from contact_viz.checks.frame import analysis_step, shrink_grey
+
+    params = DiagnosticParams(tool_diameter_mm=3.5)
+    drift = case.pop("drift", 0)
+    mask, depth, left, right = scene(**case)
+    if drift:
+        mask = np.roll(mask, drift, axis=0)
+    ref = measure_frame(mask, depth, left, right, FX, BASELINE, params, evidence=True)
+    big = _doubled(mask, depth, left, right)
+    half = replace(params, analysis_width_px=W)  # 2 W px wide: every 2nd pixel
+    assert analysis_step(2 * W, half) == 2 and analysis_step(W, half) == 1
+    m = measure_frame(big[0], big[1], shrink_grey(big[2], 2), shrink_grey(big[3], 2), 2 * FX, BASELINE, half,
+                      evidence=True)
+    assert m.tool_area_px == 4 * ref.tool_area_px and m.touches_border == ref.touches_border
+    assert m.shaft_width_px == 2 * ref.shaft_width_px and m.extra_blob_px == 4 * ref.extra_blob_px
+    for name in ("inside_far_fraction", "outside_tool_fraction", "hole_fraction", "width_ratio", "residual_ratio"):
+        assert getattr(m, name) == pytest.approx(getattr(ref, name), rel=1e-5, abs=1e-6), name
+    # the image gradient is smoothed by the shrinking there, by a 3x3 Gaussian at full size: same verdict
+    assert (m.edge_support < params.min_edge_support) == (ref.edge_support < params.min_edge_support)
+    assert m.edge_support == pytest.approx(ref.edge_support, abs=0.1)
+    assert m.evidence.step == 2 and m.evidence.residual.shape == ref.evidence.residual.shape
+    np.testing.assert_array_equal(m.evidence.contour_xy, 2 * ref.evidence.contour_xy)
+    assert big[0][m.evidence.contour_xy[:, 1].astype(int), m.evidence.contour_xy[:, 0].astype(int)].all()
+    with pytest.raises(ValueError, match="left_grey must be 120x200 px"):
+        measure_frame(*big, 2 * FX, BASELINE, half)
+
+
 def _measures(**kw):
     mask, depth, left, right = scene()
     base = measure_frame(mask, depth, left, right, FX, BASELINE, DiagnosticParams(tool_diameter_mm=3.5))

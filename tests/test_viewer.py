@@ -714,3 +714,40 @@ def test_view_with_no_readable_frame_fails_and_leaves_no_recording(session_dir, 
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines()[-1] == f"error: {broken}: no frame could be read (see the warnings above); no recording written"
     assert not out.exists()
+
+
+@pytest.mark.parametrize("image_format", ["jpg", "png"])
+def test_viewer_flags_what_check_flags_and_shows_the_evidence_at_the_image_size(image_format, tmp_path):
+    """The viewer and `contact-viz check` run the checks on the same pixels, here at half resolution
+    (analysis width 160 px on 320 px images; JPEG files decode to it, PNG images are decoded and
+    shrunk), so they flag the same frames; on frames where a check with evidence fired the recording
+    holds the residual picture at the image's size and the mask contour on the image's pixels."""
+    import cv2
+
+    from contact_viz.checks.params import DiagnosticParams
+    from contact_viz.pipeline.check import check_session
+    from contact_viz.synth import SynthParams, generate_session
+    from contact_viz.synth.faults import inject_fault
+
+    clean = generate_session(tmp_path / "clean", SynthParams(phantom="cup", frames=24, seed=3, width=320, height=180))
+    broken = tmp_path / "broken"
+    inject_fault(clean, broken, "mask_drift", range(8, 14), severity=8)
+    if image_format == "png":
+        for side in ("left", "right"):
+            for jpg in (broken / side).glob("*.jpg"):
+                cv2.imwrite(str(jpg.with_suffix(".png")), cv2.imread(str(jpg)))
+                jpg.unlink()
+    params = DiagnosticParams(analysis_width_px=160)
+    report = check_session(broken, params=params)
+    session, summary, rec = run(broken, tmp_path / "view.rrd", DebuggerOptions(diagnostics=params, points=False))
+    assert summary.diagnostic_ranges == report.fired
+    evidence_frames = sorted({f for code in rerun_log.EVIDENCE_CHECKS for a, b in report.fired.get(code, [])
+                              for f in range(a, b + 1)})
+    assert set(range(9, 14)) <= set(evidence_frames)  # the drifted mask is caught
+    blobs = rec.values(rerun_log.ENTITY_EVIDENCE_RESIDUAL, "EncodedImage:blob")
+    assert sorted(blobs) == evidence_frames
+    picture = cv2.imdecode(image_buffer(blobs[evidence_frames[0]], (-1,), np.uint8), cv2.IMREAD_COLOR)
+    assert picture.shape == (180, 320, 3)
+    contour = rec.values(rerun_log.ENTITY_EVIDENCE_CONTOUR, "Points2D:positions")[evidence_frames[0]]
+    xy = np.asarray(contour.values.flatten().to_numpy(zero_copy_only=False)).reshape(-1, 2)
+    assert len(xy) > 10 and np.all((xy - 0.5) % 2 == 0)  # every 2nd pixel, drawn at pixel centres

@@ -20,7 +20,12 @@ calibration of one rectified frame and returns :class:`FrameMeasures`, the quant
   of +- 15%): well below 1 when the depth explains the stereo pair, near or above 1 when not;
 * a digest of the depth and a grey thumbnail, for frozen-depth and image-change tests.
 
-Everything runs on the tool's bounding box padded by ``pad_frac`` x width. No I/O.
+Everything runs on the tool's bounding box padded by ``pad_frac`` x width, and at a reduced
+resolution on large frames: every n-th pixel of the mask and the depth (nearest sampling: no depth
+is mixed across the tool's edge) and the grey images shrunk n times by pixel averaging
+(:func:`shrink_grey`), n = :func:`analysis_step` (2 at 1080p with the default
+``analysis_width_px`` 960). Areas, positions and widths are reported in pixels of the full image.
+No I/O.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ import numpy as np
 
 from contact_viz.checks.params import DiagnosticParams
 
-__all__ = ["FrameEvidence", "FrameMeasures", "measure_frame", "THUMB_SIZE"]
+__all__ = ["FrameEvidence", "FrameMeasures", "analysis_step", "measure_frame", "shrink_grey", "THUMB_SIZE"]
 
 THUMB_SIZE = (32, 18)  # (width, height) of the grey thumbnail kept per frame, px
 RESIDUAL_DELTA = 0.15  # the alternative disparities are (1 +- this) x the depth's, fraction
@@ -44,14 +49,18 @@ SOBEL_NORM = 8.0  # Sobel 3x3 output / this = grey levels per px
 
 @dataclass(frozen=True)
 class FrameEvidence:
-    """Pictures of what the checks measured, for the viewer (full-image coordinates)."""
+    """Pictures of what the checks measured, for the viewer.
 
-    residual_xywh: tuple[int, int, int, int]  # where the residual image lies in the left image, px
+    The pictures are at the analysis resolution: one of their pixels is ``step`` x ``step`` pixels of
+    the image; the contour is in full-image pixels."""
+
+    residual_xywh: tuple[int, int, int, int]  # where the residual image lies in the shrunk left image, px / step
     residual: np.ndarray  # (h, w) uint8: |left - warped right| (grey levels, clipped to 255), 0 outside the region
-    contour_xy: np.ndarray  # (n, 2) float32 mask contour pixels (x, y)
+    contour_xy: np.ndarray  # (n, 2) float32 mask contour pixels (x, y), full-image px
     contour_on_edge: np.ndarray  # (n,) bool: on an image edge
     region: np.ndarray  # (h, w) bool: where the residual was measured (valid depth near the tool)
-    left_grey: np.ndarray | None  # (H, W) the left image, grey (the background of the residual picture)
+    left_grey: np.ndarray | None  # (ceil(H/step), ceil(W/step)) the shrunk left image, grey (the picture's background)
+    step: int = 1  # image pixels per picture pixel along each axis
 
 
 @dataclass(frozen=True)
@@ -75,9 +84,25 @@ class FrameMeasures:
     evidence: FrameEvidence | None = field(default=None, repr=False)
 
 
-DIGEST_STRIDE = 3  # the depth digest hashes every 3rd row and column (a repeated map matches, a new one
-# differs by its noise everywhere): 1/9 of the bytes, about 1 ms instead of 10 at 1080p
+DIGEST_STRIDE = 3  # the depth digest hashes every 3rd row and column of the analysed depth (a repeated map matches,
+# a new one differs by its noise everywhere): at 1080p every 6th, 1/36 of the bytes, 0.35 ms (every 3rd: 1.3)
 BLOB_STEP = 2  # extra blobs are found on every 2nd row and column of the mask (a quarter of the cost), px
+
+
+def analysis_step(width_px: int, params: DiagnosticParams = DiagnosticParams()) -> int:
+    """n: the checks of a frame ``width_px`` wide look at every n-th pixel, the smallest n with
+    ``width_px / n <= params.analysis_width_px``."""
+    return max(1, -(-int(width_px) // params.analysis_width_px))
+
+
+def shrink_grey(image: np.ndarray, step: int) -> np.ndarray:
+    """The grey image the checks read: (H, W, 3) uint8 RGB or (H, W) grey, shrunk ``step`` times by
+    pixel averaging to (ceil(H/step), ceil(W/step))."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    if step == 1:
+        return grey
+    height, width = grey.shape
+    return cv2.resize(grey, (-(-width // step), -(-height // step)), interpolation=cv2.INTER_AREA)
 
 
 def _digest(depth_m: np.ndarray) -> bytes:
@@ -135,18 +160,33 @@ def measure_frame(
 ) -> FrameMeasures:
     """The diagnostics' measurements of one frame (see the module docstring).
 
-    tool_mask (H, W) bool; depth_m (H, W) float, m, invalid where not finite or <= 0; left_grey /
-    right_grey (H, W) uint8 or float grey images, or None (then the image checks are NaN).
+    tool_mask (H, W) bool; depth_m (H, W) float, m, invalid where not finite or <= 0; fx_px of the
+    full image; left_grey / right_grey the grey images shrunk to the analysis size,
+    ``shrink_grey(image, analysis_step(W, params))`` (the full (H, W) images when the step is 1), uint8
+    or float, or None (then the image checks are NaN).
     """
-    mask = np.ascontiguousarray(tool_mask, dtype=bool)
-    height, width = mask.shape
-    digest = _digest(depth_m)
+    full = np.asarray(tool_mask, dtype=bool)
+    step = analysis_step(full.shape[1], params)
+    digest = _digest(depth_m[::step, ::step])
     thumb = _thumb(left_grey)
-    area = int(np.count_nonzero(mask))
+    area = int(np.count_nonzero(full))
     nan = math.nan
     if area == 0:
         return FrameMeasures(0, False, 0, None, nan, nan, nan, nan, 0.0, nan, nan, nan, digest, thumb)
+    touches = bool(full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any())
+    mask = np.ascontiguousarray(full[::step, ::step])
+    depth_m = depth_m[::step, ::step]
+    fx_px = fx_px / step
+    height, width = mask.shape
+    for name, grey in (("left_grey", left_grey), ("right_grey", right_grey)):
+        if grey is not None and np.shape(grey)[:2] != mask.shape:
+            raise ValueError(f"measure_frame: {name} must be {height}x{width} px (the image shrunk {step} times), "
+                             f"got {np.shape(grey)}")
+    if not mask.any():  # a sliver the sampling misses: nothing to measure at this resolution
+        return FrameMeasures(area, touches, 0, None, nan, nan, nan, nan, 0.0, nan, nan, nan, digest, thumb)
     extra_px, extra_xy = _blobs(mask, params.blob_gap_frac * width)
+    extra_px *= step * step
+    extra_xy = None if extra_xy is None else (extra_xy[0] * step, extra_xy[1] * step)
 
     bx, by, bw, bh = cv2.boundingRect(mask.view(np.uint8))
     pad = int(math.ceil(params.pad_frac * width)) + 2
@@ -154,7 +194,6 @@ def measure_frame(
     x0, x1 = max(bx - pad, 0), min(bx + bw + pad, width)
     m = mask[y0:y1, x0:x1]
     m8 = m.view(np.uint8)
-    touches = bool(by == 0 or bx == 0 or by + bh == height or bx + bw == width)
     z = np.asarray(depth_m[y0:y1, x0:x1], dtype=np.float32)
     valid = np.isfinite(z) & (z > 0)
     z0 = np.where(valid, z, np.float32(0))
@@ -215,7 +254,8 @@ def measure_frame(
     mag = None
     left_c = None if left_grey is None else np.asarray(left_grey[y0:y1, x0:x1], dtype=np.float32)
     if left_c is not None:
-        grey = cv2.GaussianBlur(left_c, (3, 3), 0)
+        # smoothed once against noise: a 3x3 Gaussian at full size; shrinking's pixel averaging did it otherwise
+        grey = cv2.GaussianBlur(left_c, (3, 3), 0) if step == 1 else left_c
         mag = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3))
         mag = cv2.dilate(mag, np.ones((3, 3), np.uint8)) / SOBEL_NORM
         if contour.any():
@@ -253,8 +293,8 @@ def measure_frame(
         res_u8 = (np.zeros(m.shape, np.uint8) if residual_img is None
                   else np.clip(residual_img, 0, 255).astype(np.uint8))
         ev = FrameEvidence((x0, y0, x1 - x0, y1 - y0), res_u8,
-                           np.stack([cxs + x0, cys + y0], axis=1).astype(np.float32), on_edge,
+                           (step * np.stack([cxs + x0, cys + y0], axis=1)).astype(np.float32), on_edge,
                            near if residual_img is not None else np.zeros(m.shape, bool),
-                           None if left_grey is None else np.asarray(left_grey))
+                           None if left_grey is None else np.asarray(left_grey), step)
     return FrameMeasures(area, touches, extra_px, extra_xy, edge_support, inside_far, outside_tool, hole_fraction,
-                         shaft_px, width_ratio, residual_ratio, residual_grey, digest, thumb, ev)
+                         shaft_px * step, width_ratio, residual_ratio, residual_grey, digest, thumb, ev)

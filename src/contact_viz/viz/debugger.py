@@ -21,7 +21,6 @@ Library code: no typer, no printing.
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 import warnings
@@ -33,10 +32,11 @@ import cv2
 import numpy as np
 
 from contact_viz.viz import rerun_log
+from contact_viz.checks.frame import FrameMeasures
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
 from contact_viz.errors import NoPatchWarning, SessionError
-from contact_viz.pipeline.check import load_grey
+from contact_viz.pipeline.check import grey_step, load_grey
 from contact_viz.pipeline.extract import iter_frame_results, run_config
 from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams, check_fields, checked, to_dict
@@ -115,7 +115,7 @@ class RunSummary:
     elapsed_s: float  # wall time of the run, s
     wait_s: float  # waiting for the next frame: mask + depth decoding (background thread) and the patch, s
     image_wait_s: float  # waiting for the images (read and decoded in their own thread), s
-    prepare_s: float  # point cloud, patch geometry, depth preview, posterior, diagnostics, s
+    prepare_s: float  # point cloud, patch geometry, depth preview, posterior, the checks, s
     log_s: float  # Rerun calls and flushes, s
     diagnostic_ranges: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # code -> (first, last) frame runs
 
@@ -175,6 +175,8 @@ class _Images:
     right_i420: np.ndarray | None
     has_right: bool
     notes: tuple[str, ...]
+    left_grey: np.ndarray | None = None  # the images the checks read (contact_viz.pipeline.check.load_grey)
+    right_grey: np.ndarray | None = None
 
 
 class _ImageReader:
@@ -184,9 +186,12 @@ class _ImageReader:
         self.session = session
         self.options = options
         self.with_right = with_right
+        self.grey_step = grey_step(session, options.diagnostics)
 
     def _read(self, side: str, path: Path, want_colors: bool, step: int = 1):
-        """(jpeg bytes, raw rgb, I420 frame, colour image) of one image; raises SessionError on a problem.
+        """(jpeg bytes, raw rgb, I420 frame, colour image, decoded RGB) of one image; raises SessionError on
+        a problem. The decoded RGB (full size, rectified; None for JPEG files read without a full decode)
+        feeds the image checks.
 
         ``step`` (video only): the frame to encode is the image at 1/step of its size."""
         height, width = self.session.image_size
@@ -199,7 +204,7 @@ class _ImageReader:
             if bgr.shape[:2] != (-(-height // step), -(-width // step)):
                 raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                          f"found about {bgr.shape[0] * step}x{bgr.shape[1] * step}")
-            return None, None, rgb_to_i420(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)), None
+            return None, None, rgb_to_i420(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)), None, None
         if opts.images == "jpeg" and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
             try:
                 data = path.read_bytes()
@@ -217,7 +222,7 @@ class _ImageReader:
                     raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                              f"found about {bgr.shape[0] * n}x{bgr.shape[1] * n}")
                 colors = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-            return data, None, None, colors
+            return data, None, None, colors, None
         rgb = read_rgb(path)
         if rectification is not None:  # raw recordings: show the rectified view the depth belongs to
             try:
@@ -228,23 +233,23 @@ class _ImageReader:
             raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                      f"found {rgb.shape[0]}x{rgb.shape[1]}")
         if opts.images == "raw":
-            return None, rgb, None, rgb
+            return None, rgb, None, rgb, rgb
         if opts.images == "video":
             n = opts.color_reduction  # the point colours need no more than a 1/n-size image
             colors = np.ascontiguousarray(rgb[::n, ::n]) if want_colors else None
-            if step > 1:
-                rgb = cv2.resize(rgb, (-(-width // step), -(-height // step)), interpolation=cv2.INTER_AREA)
-            return None, None, rgb_to_i420(rgb), colors
+            small = rgb if step == 1 else cv2.resize(rgb, (-(-width // step), -(-height // step)),
+                                                      interpolation=cv2.INTER_AREA)
+            return None, None, rgb_to_i420(small), colors, rgb
         ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
                                    [cv2.IMWRITE_JPEG_QUALITY, opts.jpeg_quality])
         if not ok:
             raise SessionError(path, f"could not JPEG-encode the {side} image")
-        return encoded.tobytes(), None, None, rgb
+        return encoded.tobytes(), None, None, rgb, rgb
 
     def load(self, index: int) -> _Images:
         stem = self.session.stems[index]
         notes = []
-        left = right = (None, None, None, None)
+        left = right = (None, None, None, None, None)
         try:
             left_path = self.session.image_path("left", index)
             if left_path is None:
@@ -258,8 +263,11 @@ class _ImageReader:
                 right = self._read("right", right_path, False, self.options.right_step)
             except SessionError as exc:
                 notes.append(f"frame {index}: right image not shown: {exc}")
+        # the checks' grey images: from the decoded RGB, or a reduced-size decode of a JPEG file
+        greys = [load_grey(self.session, side, index, self.grey_step, rgb=read[4]) if use else None
+                 for side, read, use in (("left", left, True), ("right", right, right_path is not None))]
         return _Images(left[0], left[1], left[2], left[3], right[0], right[1], right[2], right_path is not None,
-                       tuple(notes))
+                       tuple(notes), *greys)
 
 
 class _VideoStreams:
@@ -299,9 +307,36 @@ class _VideoStreams:
 # --------------------------------------------------------------------------------------------
 
 
-def _grey_pair(session: Session, with_right: bool, index: int):
-    """(left, right) grey images of a frame for the image checks (None where missing or unreadable)."""
-    return load_grey(session, "left", index), load_grey(session, "right", index) if with_right else None
+@dataclass(frozen=True)
+class _Prepared:
+    """What a frame shows besides its images, computed before it is logged (:func:`_prepare`)."""
+
+    measures: FrameMeasures | None  # the checks' measurements (None = bad frame)
+    depth_u16: np.ndarray | None = None  # decimated depth
+    depth_layers: np.ndarray | None = None  # decimated patch layers
+    cloud: object | None = None  # contact_viz.geometry.pointcloud.Cloud, or None without points
+    geometry: object | None = None  # contact_viz.geometry.pointcloud.PatchGeometry
+
+
+def _prepare(result, shown: _Images, tracker: DiagnosticsTracker, K: np.ndarray, options: DebuggerOptions
+             ) -> _Prepared:
+    """The pure per-frame work of the viewer: the checks' measurements, the depth preview, the cloud, the patch's 3D.
+
+    (Run in the loop's thread: one frame ahead in a thread of its own it was slower, 20.4 against 22.5
+    frames/s on a 1080p JPEG session with --images jpeg, medians of 4 interleaved runs: the threads
+    contend for the GIL.)"""
+    measures = tracker.measure(result, shown.left_grey, shown.right_grey, evidence=True)
+    frame, patch = result.frame, result.patch
+    if patch is None:
+        return _Prepared(measures)
+    step = options.depth_step
+    return _Prepared(
+        measures,
+        depth_preview(frame.depth_m, step, options.depth_units_per_m),
+        np.ascontiguousarray(patch.layer_ids[::step, ::step]),
+        depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy, params=options.cloud)
+        if options.points else None,
+        patch_geometry(frame.depth_m, K, patch, options.patch_params))
 
 
 def _pose_samples(session: Session, options: DebuggerOptions) -> np.ndarray | None:
@@ -372,8 +407,6 @@ def run_debugger(
     images = prefetched(reader.load, indices, options.prefetch, workers=options.image_workers,
                         thread_name="contact-viz-images")
     videos = _VideoStreams(session, rec, options, with_right) if options.images == "video" else None
-    greys = prefetched(functools.partial(_grey_pair, session, with_right), indices, options.prefetch,
-                       thread_name="contact-viz-grey")  # what the image checks read
     done = bad = 0
     wait_s = image_wait_s = prepare_s = log_s = 0.0
     interrupted = False
@@ -387,7 +420,8 @@ def run_debugger(
             shown = next(images)
             t2 = time.perf_counter()
             frame, patch = result.frame, result.patch
-            diag = tracker.update(result, *next(greys), evidence=True)
+            prepared = _prepare(result, shown, tracker, K, options)
+            diag = tracker.update(result, measures=prepared.measures, evidence=True)
             diagnostics = diag.fired
             posterior = predicted = None
             if stream is not None:
@@ -412,13 +446,12 @@ def run_debugger(
                     left_in_video=shown.left_i420 is not None,
                     right_in_video=shown.right_i420 is not None,
                     has_right=shown.has_right,
-                    depth_u16=depth_preview(frame.depth_m, step, options.depth_units_per_m),
+                    depth_u16=prepared.depth_u16,
                     depth_units_per_m=options.depth_units_per_m,
-                    depth_layers=np.ascontiguousarray(patch.layer_ids[::step, ::step]),
+                    depth_layers=prepared.depth_layers,
                     depth_window_xyxy=None if window is None else tuple(v / step for v in window),
-                    cloud=depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy,
-                                      params=options.cloud) if options.points else None,
-                    geometry=patch_geometry(frame.depth_m, K, patch, options.patch_params),
+                    cloud=prepared.cloud,
+                    geometry=prepared.geometry,
                     posterior=posterior,
                     predicted=predicted,
                     diagnostics=diagnostics,
@@ -447,7 +480,6 @@ def run_debugger(
     finally:
         results.close()
         images.close()
-        greys.close()
         t5 = time.perf_counter()
         if videos is not None:
             videos.close()

@@ -491,13 +491,18 @@ def _log_evidence(rec: rr.RecordingStream, evidence: FrameEvidence | None, shape
     import cv2
 
     x, y, w, h = evidence.residual_xywh
-    # grey left image everywhere, the residual in colour where it was measured
-    grey = evidence.left_grey if evidence.left_grey is not None else np.zeros(shape, np.uint8)
+    # grey left image everywhere, the residual in colour where it was measured (at the checks' resolution,
+    # then brought to the image's size so that it lies over the left image)
+    step = evidence.step
+    grey = evidence.left_grey if evidence.left_grey is not None else np.zeros(
+        (-(-shape[0] // step), -(-shape[1] // step)), np.uint8)
     colour = cv2.cvtColor(np.asarray(grey, dtype=np.uint8), cv2.COLOR_GRAY2BGR)
     heat = cv2.applyColorMap(np.clip(evidence.residual.astype(np.float32) * 4.0, 0, 255).astype(np.uint8),
                              cv2.COLORMAP_INFERNO)
     crop = colour[y:y + h, x:x + w]
     crop[evidence.region] = heat[evidence.region]
+    if colour.shape[:2] != tuple(shape):
+        colour = cv2.resize(colour, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
     ok, jpeg = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, 70])
     if ok:
         rec.log(ENTITY_EVIDENCE_RESIDUAL, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg",
