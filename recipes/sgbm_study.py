@@ -3,6 +3,7 @@
     python recipes/sgbm_study.py                        # 640x360, 150 frames, into .study/
     python recipes/sgbm_study.py --first-frames 75      # the same sessions, their first 75 frames (faster)
     python recipes/sgbm_study.py --band-sweep           # SGBM settings beside the tool, training sessions only
+    python recipes/sgbm_study.py --dir .study-1400 --seed-offset 100 --only-default --bleed-px ""  # another draw
 
 Ten ``contact-viz synth`` sessions (six ``cup`` for training, seeds 1300-1305; one test session
 each on ``cup``, ``kidney``, ``liver`` and ``glove``, seeds 1310-1313) are generated once into
@@ -355,10 +356,20 @@ def main(argv=None) -> int:
     parser.add_argument("--bleed-px", default="0,2,4,6", help="bleeding widths to test, px (comma-separated)")
     parser.add_argument("--first-frames", type=int, default=None,
                         help="use only the first N frames of each session (all sessions and methods alike)")
+    parser.add_argument("--seed-offset", type=int, default=0,
+                        help="add this to every session seed (another draw of the same study: 100 = seeds 1400-1413)")
+    parser.add_argument("--only-default", action="store_true",
+                        help="only the rendered depth and the default SGBM path (no earlier matchers; faster)")
     parser.add_argument("--band-sweep", action="store_true",
                         help="instead: compare SGBM settings beside the tool on the training sessions (how the "
                         "defaults were chosen), on every 15th frame from frame 7")
     args = parser.parse_args(argv)
+    global TRAIN, TEST, SOURCES, METHODS  # the study's sessions and rows, as the options choose them
+    TRAIN = [(name, phantom, seed + args.seed_offset) for name, phantom, seed in TRAIN]
+    TEST = [(name, phantom, seed + args.seed_offset) for name, phantom, seed in TEST]
+    if args.only_default:
+        SOURCES = {k: v for k, v in SOURCES.items() if k in ("rendered", "SGBM, mask-aware")}
+        METHODS = {k: v for k, v in METHODS.items() if v[0] in SOURCES and (k == "rendered depth" or "default" in k)}
     size = tuple(int(v) for v in args.size.lower().split("x"))
     directory = args.dir.resolve()
     cache_dir = directory / "cache"
@@ -366,7 +377,8 @@ def main(argv=None) -> int:
     if args.band_sweep:
         band_sweep(directory, 15, 7, args.processes)
         return 0
-    results: dict = {"frames": args.frames, "first_frames": args.first_frames, "size": args.size, "tables": {}}
+    results: dict = {"frames": args.frames, "first_frames": args.first_frames, "size": args.size,
+                     "seeds": {name: seed for name, _, seed in TRAIN + TEST}, "tables": {}}
     if args.first_frames:
         print(f"(only the first {args.first_frames} of the {args.frames} frames of each session are used)")
     signals = {}
