@@ -15,6 +15,7 @@ back with PyAV and prints its PSNR against the source images, and on the Middleb
 pair (skimage.data.stereo_motorcycle, upscaled to 1920x1080 and panned 2 px a frame).
 
 Run: .venv/bin/python benchmarks/bench_viewer.py [--frames 150] [--repeats 3] [--images video jpeg]
+     .venv/bin/python benchmarks/bench_viewer.py --compare OLD/src NEW/src --repeats 3   # trees side by side
 """
 
 from __future__ import annotations
@@ -58,9 +59,13 @@ def make_sessions(workdir: Path, frames: int) -> tuple[Path, Path]:
     return jpeg, png
 
 
-def run_view(session: Path, out: Path, frames: int, images: str, cache: Path) -> dict:
-    """`contact-viz view` in a fresh process: wall s, CPU s (user + sys), peak RSS MB, .rrd MB, its time split."""
+def run_view(session: Path, out: Path, frames: int, images: str, cache: Path, src: Path | None = None) -> dict:
+    """`contact-viz view` in a fresh process: wall s, CPU s (user + sys), peak RSS MB, .rrd MB, its time split.
+
+    ``src``: import contact_viz from this source tree (another checkout's src/) instead."""
     env = dict(os.environ, CONTACT_VIZ_CACHE=str(cache))
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
     cmd = [sys.executable, "-m", "contact_viz.cli", "view", str(session), "--save", str(out), "--end", str(frames),
            "--images", images]
     t0 = time.perf_counter()
@@ -176,12 +181,61 @@ def cost_per_image(jpeg: Path, png: Path, n: int = 20) -> dict[str, float]:
     return costs
 
 
+def cost_of_checks(session_dir: Path, n: int = 20) -> dict[str, float]:
+    """CPU ms per 1080p frame of the diagnostics: reading the grey pair and measuring, at the default analysis
+    resolution and at full resolution (contact_viz.checks)."""
+    from contact_viz.checks.frame import measure_frame
+    from contact_viz.checks.params import DiagnosticParams
+    from contact_viz.io.session import open_session
+    from contact_viz.pipeline.check import grey_step, load_grey
+
+    session = open_session(session_dir)
+    K = session.calibration.K
+    indices = range(0, min(len(session), 5 * n), 5)
+    frames = [session.load_frame(i) for i in indices]
+    costs = {}
+    full = DiagnosticParams(analysis_width_px=1 << 16)
+    for label, params in (("default", DiagnosticParams()), ("full resolution", full)):
+        step = grey_step(session, params)
+        t0 = time.process_time()
+        greys = [(load_grey(session, "left", i, step), load_grey(session, "right", i, step)) for i in indices]
+        t1 = time.process_time()
+        for frame, (left, right) in zip(frames, greys):
+            measure_frame(frame.tool_mask, frame.depth_m, left, right, float(K[0][0]),
+                          float(session.calibration.baseline_m), params, evidence=True)
+        t2 = time.process_time()
+        costs[f"grey pair ({label}, 1/{step})"] = 1000 * (t1 - t0) / len(frames)
+        costs[f"measurements ({label})"] = 1000 * (t2 - t1) / len(frames)
+    return costs
+
+
+def compare(trees: list[Path], sessions: dict[str, Path], modes: list[str], frames: int, repeats: int,
+            workdir: Path, cache: Path) -> None:
+    """Each tree on each session and --images mode, every case once per round (the machine's speed drifts)."""
+    runs: dict[tuple, list[dict]] = {}
+    for _ in range(repeats):
+        for name, session in sessions.items():
+            for images in modes:
+                for k, src in enumerate(trees):
+                    out = workdir / f"compare-{k}.rrd"
+                    runs.setdefault((name, images, k), []).append(run_view(session, out, frames, images, cache, src))
+    print(f"{frames} frames at 1920x1080, `contact-viz view SESSION --save out.rrd --images MODE`, medians of {repeats}"
+          " interleaved runs:")
+    for (name, images, k), rs in runs.items():
+        wall = statistics.median(r["wall_s"] for r in rs)
+        cpu = statistics.median(r["cpu_s"] for r in rs)
+        print(f"  {name} session, --images {images}, {trees[k]}: {frames / wall:.1f} frames/s, "
+              f"CPU {1000 * cpu / frames:.0f} ms/frame, {statistics.median(r['rrd_mb'] for r in rs) / frames:.3f} MB/frame")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=150, help="frames of the session (and runs on half of them)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of each case (medians are reported)")
     parser.add_argument("--images", nargs="+", default=["video", "jpeg"], choices=["video", "jpeg", "raw"])
     parser.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "contact-viz-bench")
+    parser.add_argument("--compare", nargs="+", type=Path, metavar="SRC",
+                        help="instead: frames/s and CPU of each SRC tree (another checkout's src/), interleaved")
     args = parser.parse_args()
 
     import warnings
@@ -191,9 +245,14 @@ def main() -> None:
     jpeg, png = make_sessions(args.workdir, args.frames)
     cache = args.workdir / "cache"
     n = args.frames
+    if args.compare:
+        compare(args.compare, {"JPEG": jpeg, "PNG": png}, args.images, n, args.repeats, args.workdir, cache)
+        return
     costs = cost_per_image(jpeg, png)
     print("CPU per 1080p image, one at a time (a frame has two): "
           + ", ".join(f"{k} {v:.1f} ms" for k, v in costs.items()))
+    print("CPU per 1080p frame of the diagnostics (JPEG session): "
+          + ", ".join(f"{k} {v:.1f} ms" for k, v in cost_of_checks(jpeg).items()))
     for frames in (n, n // 2):
         cases = [(name, session, images) for name, session in (("JPEG", jpeg), ("PNG", png))
                  for images in args.images]
