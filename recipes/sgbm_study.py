@@ -57,7 +57,7 @@ from contact_viz.io.decoders import read_rgb
 from contact_viz.io.session import BadFrame, open_session
 from contact_viz.model.hmm import LosoEnsemble
 from contact_viz.model.metrics import format_table, macro_mean, session_metrics, MACRO_ROW
-from contact_viz.params import LabelParams, PatchParams
+from contact_viz.params import PatchParams
 from contact_viz.pipeline.extract import cached_features, extract_features, feature_arrays
 
 TRAIN = [(f"cup_train_{k}", "cup", 1300 + k) for k in range(6)]
