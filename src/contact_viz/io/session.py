@@ -90,6 +90,7 @@ log = logging.getLogger(__name__)
 LAYERS = frozenset({"mask", "depth", "left", "right"})  # names of the per-frame layers iter_frames can decode
 DEFAULT_FPS = 30.0  # frame rate used when session.json gives none, frames/s
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # accepted left/right image file types, in lookup preference
+JPEG_SUFFIXES = (".jpg", ".jpeg")  # of those, the JPEG ones (decodable at reduced size)
 DEPTH_SOURCES = ("depth", "disparity", "sgbm")  # where a session's depth can come from, in preference order
 
 

@@ -24,7 +24,7 @@ from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, FrameChecker, Patch
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
 from contact_viz.errors import SessionError
 from contact_viz.geometry.patch import compute_patch
-from contact_viz.io.session import BadFrame, Session, open_session
+from contact_viz.io.session import JPEG_SUFFIXES, BadFrame, Session, open_session
 from contact_viz.params import PatchParams
 
 __all__ = ["CheckReport", "FrameRecord", "check_session", "grey_step", "load_grey", "measure_session_frame"]
@@ -35,7 +35,6 @@ CHUNK_FRAMES = 8  # frames a process claims at a time, frames
 # cv2 flags decoding a JPEG to grey at 1/n size (libjpeg DCT scaling: 1080p pair 13 -> 7 ms of CPU at n = 2)
 _REDUCED_GREY = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
                  8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
-JPEG_SUFFIXES = (".jpg", ".jpeg")
 
 
 def grey_step(session: Session, params: DiagnosticParams) -> int:
@@ -92,7 +91,7 @@ def measure_session_frame(session: Session, index: int, patch_params: PatchParam
 
 def measure_loaded_frame(session: Session, frame, patch, left_grey, right_grey, params: DiagnosticParams,
                          evidence: bool = False) -> FrameRecord:
-    """The :class:`FrameRecord` of a decoded frame and its patch (shared with the viewer)."""
+    """The :class:`FrameRecord` of a decoded frame, its patch and its grey images (as load_grey reads them)."""
     K = session.calibration.K
     measures = measure_frame(frame.tool_mask, frame.depth_m, left_grey, right_grey, float(K[0][0]),
                              float(session.calibration.baseline_m), params, evidence=evidence)

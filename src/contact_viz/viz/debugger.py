@@ -32,7 +32,6 @@ import cv2
 import numpy as np
 
 from contact_viz.viz import rerun_log
-from contact_viz.checks.frame import FrameMeasures
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
 from contact_viz.errors import NoPatchWarning, SessionError
@@ -42,7 +41,7 @@ from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams, check_fields, checked, to_dict
 from contact_viz.geometry.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
 from contact_viz.io.prefetch import prefetched
-from contact_viz.io.session import Session, read_rgb
+from contact_viz.io.session import JPEG_SUFFIXES, Session, read_rgb
 from contact_viz.viz.video import BackgroundEncoder, VideoEncoder, VideoParams, even_size, rgb_to_i420
 from contact_viz.geometry.kinematics import frame_samples, kinematic_tip
 from contact_viz.geometry.tooltip import tool_tip_xy
@@ -54,7 +53,6 @@ __all__ = [
     "select_frames",
 ]
 
-JPEG_SUFFIXES = (".jpg", ".jpeg")
 JPEG_SOI = b"\xff\xd8\xff"  # every JPEG file starts with these bytes
 # cv2 flags decoding a JPEG at 1/n size (libjpeg DCT scaling: much faster than a full decode)
 _REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
@@ -307,38 +305,6 @@ class _VideoStreams:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class _Prepared:
-    """What a frame shows besides its images, computed before it is logged (:func:`_prepare`)."""
-
-    measures: FrameMeasures | None  # the checks' measurements (None = bad frame)
-    depth_u16: np.ndarray | None = None  # decimated depth
-    depth_layers: np.ndarray | None = None  # decimated patch layers
-    cloud: object | None = None  # contact_viz.geometry.pointcloud.Cloud, or None without points
-    geometry: object | None = None  # contact_viz.geometry.pointcloud.PatchGeometry
-
-
-def _prepare(result, shown: _Images, tracker: DiagnosticsTracker, K: np.ndarray, options: DebuggerOptions
-             ) -> _Prepared:
-    """The pure per-frame work of the viewer: the checks' measurements, the depth preview, the cloud, the patch's 3D.
-
-    (Run in the loop's thread: one frame ahead in a thread of its own it was slower, 20.4 against 22.5
-    frames/s on a 1080p JPEG session with --images jpeg, medians of 4 interleaved runs: the threads
-    contend for the GIL.)"""
-    measures = tracker.measure(result, shown.left_grey, shown.right_grey, evidence=True)
-    frame, patch = result.frame, result.patch
-    if patch is None:
-        return _Prepared(measures)
-    step = options.depth_step
-    return _Prepared(
-        measures,
-        depth_preview(frame.depth_m, step, options.depth_units_per_m),
-        np.ascontiguousarray(patch.layer_ids[::step, ::step]),
-        depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy, params=options.cloud)
-        if options.points else None,
-        patch_geometry(frame.depth_m, K, patch, options.patch_params))
-
-
 def _pose_samples(session: Session, options: DebuggerOptions) -> np.ndarray | None:
     """Index of the kinematics.csv row drawn at each frame (-1: none within the gap); None without a hand-eye."""
     if options.hand_eye is None:
@@ -420,8 +386,9 @@ def run_debugger(
             shown = next(images)
             t2 = time.perf_counter()
             frame, patch = result.frame, result.patch
-            prepared = _prepare(result, shown, tracker, K, options)
-            diag = tracker.update(result, measures=prepared.measures, evidence=True)
+            # (in this thread: one frame ahead in a thread of its own, the checks, cloud and depth preview were
+            # slower, 20.4 against 22.5 frames/s, 1080p JPEG session, --images jpeg: the threads contend for the GIL)
+            diag = tracker.update(result, shown.left_grey, shown.right_grey, evidence=True)
             diagnostics = diag.fired
             posterior = predicted = None
             if stream is not None:
@@ -446,12 +413,13 @@ def run_debugger(
                     left_in_video=shown.left_i420 is not None,
                     right_in_video=shown.right_i420 is not None,
                     has_right=shown.has_right,
-                    depth_u16=prepared.depth_u16,
+                    depth_u16=depth_preview(frame.depth_m, step, options.depth_units_per_m),
                     depth_units_per_m=options.depth_units_per_m,
-                    depth_layers=prepared.depth_layers,
+                    depth_layers=np.ascontiguousarray(patch.layer_ids[::step, ::step]),
                     depth_window_xyxy=None if window is None else tuple(v / step for v in window),
-                    cloud=prepared.cloud,
-                    geometry=prepared.geometry,
+                    cloud=depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy,
+                                      params=options.cloud) if options.points else None,
+                    geometry=patch_geometry(frame.depth_m, K, patch, options.patch_params),
                     posterior=posterior,
                     predicted=predicted,
                     diagnostics=diagnostics,

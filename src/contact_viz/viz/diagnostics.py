@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contact_viz.checks.frame import FrameEvidence, FrameMeasures, measure_frame
+from contact_viz.checks.frame import FrameEvidence, measure_frame
 from contact_viz.checks.params import DiagnosticParams
 from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, Diagnostic, FrameChecker, PatchNumbers, fired_ranges
 from contact_viz.checks.session import force_lag, frame_time_problems
@@ -58,26 +58,15 @@ class DiagnosticsTracker:
         self.frames = 0
         self._signal: dict[int, float] = {}
 
-    def measure(self, frame_result, left_grey=None, right_grey=None, *, evidence: bool = False
-                ) -> FrameMeasures | None:
-        """The frame's measurements (None for a bad frame): no state, so it may run ahead in another thread."""
-        frame = frame_result.frame
-        if frame_result.patch is None:
-            return None
-        return measure_frame(frame.tool_mask, frame.depth_m, left_grey, right_grey, self.fx_px, self.baseline_m,
-                             self.params, evidence=evidence)
-
-    def update(self, frame_result, left_grey=None, right_grey=None, *, evidence: bool = False,
-               measures: FrameMeasures | None = None) -> FrameDiagnostics:
-        """Run the checks on the next frame, in frame order; ``measures``: its :meth:`measure`, if taken already."""
+    def update(self, frame_result, left_grey=None, right_grey=None, *, evidence: bool = False) -> FrameDiagnostics:
         frame, patch = frame_result.frame, frame_result.patch
         if patch is None:
             fired = [Diagnostic("bad_frame", frame.index, f"frame {frame.stem}: {frame.reason}", math.nan)]
             scores, ev = {}, None
             self.checker.reset_previous()
         else:
-            if measures is None:
-                measures = self.measure(frame_result, left_grey, right_grey, evidence=evidence)
+            measures = measure_frame(frame.tool_mask, frame.depth_m, left_grey, right_grey, self.fx_px,
+                                     self.baseline_m, self.params, evidence=evidence)
             numbers = PatchNumbers(float(patch.distance_m), None if patch.center_xy is None else
                                    (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason)
             fired, scores = self.checker.check(frame.index, measures, numbers)
