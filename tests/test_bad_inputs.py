@@ -409,6 +409,48 @@ def test_view_warnings_look_like_extract_warnings(session, tmp_path):
     assert rrd.exists()
 
 
+@pytest.mark.parametrize("command", [["view", "--images", "video"], ["view", "--images", "jpeg"], ["check"]])
+def test_truncated_jpeg_is_named_not_grey_filled(session, tmp_path, command):
+    """A left JPEG cut short: libjpeg would decode it with grey rows and print "Premature end of JPEG
+    file". The viewer and `check` name the file in one warning line and go on (subprocess: the console
+    as the user sees it); nothing in the session changes."""
+    path = session / "left" / f"{STEM}.jpg"
+    truncate(path)
+    before = tree_hash(session)
+    args = [*command, str(session)] + (["--save", str(tmp_path / "v.rrd")] if command[0] == "view" else [])
+    proc = subprocess.run([sys.executable, "-m", "contact_viz.cli", *args], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    output = proc.stdout + proc.stderr
+    named = [line for line in output.splitlines() if "left/000003.jpg" in line]
+    assert len(named) == 1 and "warning:" in named[0] and "cut short" in named[0], output
+    assert "Premature end" not in output and "Traceback" not in output
+    assert tree_hash(session) == before
+
+
+def test_jpeg_completeness_test():
+    """A JPEG is whole when its end-of-image marker is within the last KiB: files that PIL writes pass,
+    with or without padding after the marker; the same files cut anywhere after the header do not."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    from contact_viz.errors import SessionError
+    from contact_viz.io.decoders import check_jpeg_complete
+
+    rng = np.random.default_rng(0)
+    buffer = BytesIO()
+    Image.fromarray(rng.integers(0, 256, (120, 160, 3), dtype=np.uint8)).save(buffer, "JPEG", quality=90)
+    data = buffer.getvalue()
+    assert data.endswith(b"\xff\xd9")
+    for whole in (data, data + b"\0" * 100):
+        check_jpeg_complete(Path("x.jpg"), whole, "a JPEG")
+    for keep in (0.3, 0.6, 0.9, 0.999):
+        with pytest.raises(SessionError, match=r"x\.jpg: expected a JPEG, found a JPEG cut short"):
+            check_jpeg_complete(Path("x.jpg"), data[: int(len(data) * keep)], "a JPEG")
+    check_jpeg_complete(Path("x.png"), b"\x89PNG\r\n\x1a\n" + bytes(50), "a PNG")  # not a JPEG: not its business
+
+
 # --------------------------------------------------------------------------------------------
 # Command-line slips
 # --------------------------------------------------------------------------------------------

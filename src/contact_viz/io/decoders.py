@@ -39,10 +39,46 @@ def _read_bytes(path: Path, what: str) -> np.ndarray:
     return data
 
 
-def _decode(path: Path, what: str, decode: Callable[[np.ndarray], np.ndarray | None]) -> np.ndarray:
-    """``decode`` applied to the file's bytes; a missing, unreadable, empty or undecodable file is one
-    SessionError naming the file and ``what`` was expected."""
+JPEG_SOI = b"\xff\xd8\xff"  # every JPEG file starts with these bytes
+_JPEG_EOI = b"\xff\xd9"  # ... and ends with this marker, which entropy-coded data cannot contain
+_JPEG_TAIL = 1024  # the end-of-image marker is looked for in this many last bytes (some writers pad), bytes
+
+
+def check_jpeg_complete(path: Path, data: bytes | np.ndarray, what: str) -> None:
+    """A SessionError when ``data`` is a JPEG cut short (no end-of-image marker near its end): libjpeg
+    would print a warning on stderr and fill the missing rows with grey instead of failing."""
+    head = bytes(data[:3])
+    if head == JPEG_SOI and _JPEG_EOI not in bytes(data[-_JPEG_TAIL:]):
+        raise SessionError(path, f"expected {what}, found a JPEG cut short (no end-of-image marker: truncated?)")
+
+
+def read_jpeg_bytes(path: Path, what: str) -> np.ndarray:
+    """A JPEG file's bytes, (k,) uint8, checked to start and end like a whole JPEG; a missing, empty,
+    other or truncated file is one SessionError naming the file and ``what`` was expected."""
     data = _read_bytes(path, what)
+    if bytes(data[:3]) != JPEG_SOI:
+        raise SessionError(path, f"expected {what}, the file does not start like a JPEG")
+    check_jpeg_complete(path, data, what)
+    return data
+
+
+def read_jpeg(path: Path, flag: int, what: str, data: np.ndarray | None = None) -> np.ndarray:
+    """``cv2.imdecode(flag)`` of a JPEG file (or of its bytes ``data`` from :func:`read_jpeg_bytes`),
+    e.g. straight to a reduced size (``cv2.IMREAD_REDUCED_*``); a SessionError as
+    :func:`read_jpeg_bytes`, or when it cannot be decoded."""
+    data = read_jpeg_bytes(path, what) if data is None else data
+    return _decode_bytes(path, what, data, lambda d: cv2.imdecode(d, flag))
+
+
+def _decode(path: Path, what: str, decode: Callable[[np.ndarray], np.ndarray | None]) -> np.ndarray:
+    """``decode`` applied to the file's bytes; a missing, unreadable, empty, truncated (JPEG) or
+    undecodable file is one SessionError naming the file and ``what`` was expected."""
+    return _decode_bytes(path, what, _read_bytes(path, what), decode)
+
+
+def _decode_bytes(path: Path, what: str, data: np.ndarray, decode: Callable[[np.ndarray], np.ndarray | None]
+                  ) -> np.ndarray:
+    check_jpeg_complete(path, data, what)
     try:
         image = decode(data)
     except DECODE_ERRORS as exc:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, FrameChecker, Patch
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
 from contact_viz.errors import SessionError
 from contact_viz.geometry.patch import compute_patch
+from contact_viz.io.decoders import read_jpeg
 from contact_viz.io.session import JPEG_SUFFIXES, BadFrame, Session, open_session
 from contact_viz.params import PatchParams
 
@@ -45,7 +46,8 @@ def grey_step(session: Session, params: DiagnosticParams) -> int:
 def load_grey(session: Session, side: str, index: int, step: int = 1, rgb: np.ndarray | None = None
               ) -> np.ndarray | None:
     """Frame ``index``'s ``side`` image as grey uint8 shrunk ``step`` times (rectified like the
-    session), or None when it is missing or unreadable (the image checks are then skipped).
+    session), or None when the frame has no such image (the image checks are then skipped).
+    Raises SessionError, naming the file, when the image cannot be read or has another size.
 
     JPEG files of unrectified sessions decode straight to the reduced size; other images are decoded
     (or taken from ``rgb``, the image already decoded and rectified by the caller) and go through
@@ -56,14 +58,27 @@ def load_grey(session: Session, side: str, index: int, step: int = 1, rgb: np.nd
     height, width = session.image_size
     size = (-(-height // step), -(-width // step))
     if session.rectification is None and path.suffix.lower() in JPEG_SUFFIXES and step in _REDUCED_GREY:
-        grey = cv2.imread(str(path), _REDUCED_GREY[step])
-        return grey if grey is not None and grey.shape == size else None
+        grey = read_jpeg(path, _REDUCED_GREY[step], f"a JPEG {side} image")
+        if grey.shape != size:
+            raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
+                                     f"found about {grey.shape[0] * step}x{grey.shape[1] * step}")
+        return grey
     if rgb is None:
         frame = session.load_frame(index, layers=(side,))
-        rgb = None if isinstance(frame, BadFrame) else (frame.left_rgb if side == "left" else frame.right_rgb)
-    if rgb is None or rgb.shape[:2] != (height, width):
-        return None
+        if isinstance(frame, BadFrame):
+            raise frame.error
+        rgb = frame.left_rgb if side == "left" else frame.right_rgb
+    if rgb.shape[:2] != (height, width):
+        raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
+                                 f"found {rgb.shape[0]}x{rgb.shape[1]}")
     return shrink_grey(rgb, step)
+
+
+def _grey_or_problem(session: Session, side: str, index: int, step: int) -> tuple[np.ndarray | None, str | None]:
+    try:
+        return load_grey(session, side, index, step), None
+    except SessionError as exc:
+        return None, str(exc)
 
 
 @dataclass(frozen=True)
@@ -75,6 +90,7 @@ class FrameRecord:
     patch: PatchNumbers | None
     signal: float  # -log10(max(|d|, eps)), NaN = no patch
     bad_reason: str | None = None
+    image_problem: str | None = None  # an image that could not be read (its checks skipped), naming the file
 
 
 def measure_session_frame(session: Session, index: int, patch_params: PatchParams, params: DiagnosticParams,
@@ -84,9 +100,12 @@ def measure_session_frame(session: Session, index: int, patch_params: PatchParam
     if isinstance(frame, BadFrame):
         return FrameRecord(index, None, None, math.nan, frame.reason)
     step = grey_step(session, params)
-    return measure_loaded_frame(session, frame, compute_patch(frame.depth_m, frame.tool_mask, patch_params),
-                                load_grey(session, "left", index, step), load_grey(session, "right", index, step),
-                                params, evidence)
+    (left, left_problem), (right, right_problem) = (_grey_or_problem(session, side, index, step)
+                                                    for side in ("left", "right"))
+    record = measure_loaded_frame(session, frame, compute_patch(frame.depth_m, frame.tool_mask, patch_params),
+                                  left, right, params, evidence)
+    problem = left_problem or right_problem
+    return record if problem is None else replace(record, image_problem=problem)
 
 
 def measure_loaded_frame(session: Session, frame, patch, left_grey, right_grey, params: DiagnosticParams,
@@ -125,6 +144,8 @@ class CheckReport:
     params: DiagnosticParams
     elapsed_s: float  # wall time, s
     messages: dict[str, str] = field(default_factory=dict)  # check code -> first message (with the likely cause)
+    # frames with an image that could not be read (their image checks skipped), and the first one's message
+    unreadable_images: tuple[list[int], str] | None = None
 
     @property
     def flagged_frames(self) -> int:
@@ -151,6 +172,10 @@ class CheckReport:
                               **({"first_message": self.messages[code]} if code in self.messages else {})}
                        for code in (*CHECKS, *SESSION_CHECKS)},
             "force_lag": lag,
+            "unreadable_images": None if self.unreadable_images is None else {
+                "frames": len(self.unreadable_images[0]),
+                "ranges": [list(r) for r in fired_ranges(self.unreadable_images[0])],
+                "first_message": self.unreadable_images[1]},
             "params": self.params.to_dict(),
             "contact_viz_version": __version__,
             "elapsed_s": round(self.elapsed_s, 3),
@@ -187,6 +212,7 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         frames["force_lag"] = (list(range(n)), f"force lags the signal by {lag.lag_frames} frames "
                                                f"({lag.lag_s:+.3f} s; correlation {lag.correlation:.2f} vs "
                                                f"{lag.zero_lag_correlation:.2f} at 0)")
+    unreadable = [r.index for r in records if r.image_problem]
     gaps = frame_time_problems(session.timestamps_s, params)
     if gaps:
         frames["frame_times"] = (gaps, f"{len(gaps)} frame(s) with a time step <= 0 or a gap")
@@ -196,6 +222,8 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         counts={code: len(idx) for code, (idx, _) in frames.items()},
         force_lag=lag, params=params, elapsed_s=time.perf_counter() - started,
         messages={code: msg for code, (_, msg) in frames.items()},
+        unreadable_images=next(((unreadable, f"frame {r.index}: {r.image_problem}") for r in records
+                                if r.image_problem), None),
     )
 
 
@@ -221,6 +249,9 @@ def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
     head = (f"{name}: {report.n_frames} frames, {report.flagged_frames} flagged "
             f"({report.elapsed_s:.1f} s)")
     lines = [head]
+    if report.unreadable_images is not None:
+        frames, first = report.unreadable_images
+        lines.append(f"  warning: {len(frames)} frame(s) with an unreadable image, their image checks skipped; {first}")
     fired = [c for c in (*CHECKS, *SESSION_CHECKS) if report.counts.get(c)]
     if not fired:
         lines.append("  no check fired")

@@ -34,13 +34,14 @@ import numpy as np
 from contact_viz.viz import rerun_log
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
-from contact_viz.errors import NoPatchWarning, SessionError
+from contact_viz.errors import NoPatchWarning, SessionError, SessionWarning
 from contact_viz.pipeline.check import grey_step, load_grey
 from contact_viz.pipeline.extract import iter_frame_results, run_config
 from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams, check_fields, checked, to_dict
 from contact_viz.geometry.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
 from contact_viz.io.prefetch import prefetched
+from contact_viz.io.decoders import read_jpeg, read_jpeg_bytes
 from contact_viz.io.session import JPEG_SUFFIXES, Session, read_rgb
 from contact_viz.viz.video import BackgroundEncoder, VideoEncoder, VideoParams, even_size, rgb_to_i420
 from contact_viz.geometry.kinematics import frame_samples, kinematic_tip
@@ -53,7 +54,6 @@ __all__ = [
     "select_frames",
 ]
 
-JPEG_SOI = b"\xff\xd8\xff"  # every JPEG file starts with these bytes
 # cv2 flags decoding a JPEG at 1/n size (libjpeg DCT scaling: much faster than a full decode)
 _REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
                   8: cv2.IMREAD_REDUCED_COLOR_8}
@@ -196,31 +196,23 @@ class _ImageReader:
         opts = self.options
         rectification = self.session.rectification
         if opts.images == "video" and step > 1 and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
-            bgr = cv2.imread(str(path), _REDUCED_COLOR[step])  # DCT scaling: a quarter of a full decode's time
-            if bgr is None:
-                raise SessionError(path, f"expected a JPEG {side} image, could not decode it")
+            # DCT scaling: a quarter of a full decode's time
+            bgr = read_jpeg(path, _REDUCED_COLOR[step], f"a JPEG {side} image")
             if bgr.shape[:2] != (-(-height // step), -(-width // step)):
                 raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                          f"found about {bgr.shape[0] * step}x{bgr.shape[1] * step}")
             return None, None, rgb_to_i420(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)), None, None
         if opts.images == "jpeg" and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
-            try:
-                data = path.read_bytes()
-            except OSError as exc:
-                raise SessionError(path, f"expected a readable JPEG {side} image ({exc})") from exc
-            if not data.startswith(JPEG_SOI):
-                raise SessionError(path, f"expected a JPEG {side} image, the file does not start like one")
+            data = read_jpeg_bytes(path, f"a JPEG {side} image")
             colors = None
             if want_colors:
                 n = opts.color_reduction
-                bgr = cv2.imdecode(np.frombuffer(data, np.uint8), _REDUCED_COLOR[n])
-                if bgr is None:
-                    raise SessionError(path, f"expected a JPEG {side} image, could not decode it")
+                bgr = read_jpeg(path, _REDUCED_COLOR[n], f"a JPEG {side} image", data)
                 if bgr.shape[:2] != (-(-height // n), -(-width // n)):
                     raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                              f"found about {bgr.shape[0] * n}x{bgr.shape[1] * n}")
                 colors = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-            return data, None, None, colors, None
+            return data.tobytes(), None, None, colors, None
         rgb = read_rgb(path)
         if rectification is not None:  # raw recordings: show the rectified view the depth belongs to
             try:
@@ -244,6 +236,12 @@ class _ImageReader:
             raise SessionError(path, f"could not JPEG-encode the {side} image")
         return encoded.tobytes(), None, None, rgb, rgb
 
+    def _grey(self, side: str, index: int, rgb: np.ndarray | None) -> np.ndarray | None:
+        try:
+            return load_grey(self.session, side, index, self.grey_step, rgb=rgb)
+        except SessionError:  # the image's note says why; its checks are skipped
+            return None
+
     def load(self, index: int) -> _Images:
         stem = self.session.stems[index]
         notes = []
@@ -254,15 +252,15 @@ class _ImageReader:
                 raise SessionError(self.session.root / "left" / f"{stem}.jpg", "missing: expected the left image")
             left = self._read("left", left_path, self.options.points)
         except SessionError as exc:
-            notes.append(f"frame {index}: left image not shown: {exc}")
+            notes.append(f"frame {stem}: left image not shown: {exc}")
         right_path = self.session.image_path("right", index) if self.with_right else None
         if right_path is not None:
             try:
                 right = self._read("right", right_path, False, self.options.right_step)
             except SessionError as exc:
-                notes.append(f"frame {index}: right image not shown: {exc}")
+                notes.append(f"frame {stem}: right image not shown: {exc}")
         # the checks' grey images: from the decoded RGB, or a reduced-size decode of a JPEG file
-        greys = [load_grey(self.session, side, index, self.grey_step, rgb=read[4]) if use else None
+        greys = [self._grey(side, index, read[4]) if use else None
                  for side, read, use in (("left", left, True), ("right", right, right_path is not None))]
         return _Images(left[0], left[1], left[2], left[3], right[0], right[1], right[2], right_path is not None,
                        tuple(notes), *greys)
@@ -384,6 +382,8 @@ def run_debugger(
                 break
             t1 = time.perf_counter()
             shown = next(images)
+            for note in shown.notes:  # an image the viewer cannot show: on the console too, not only in the log
+                warnings.warn(note, SessionWarning, stacklevel=2)
             t2 = time.perf_counter()
             frame, patch = result.frame, result.patch
             # (in this thread: one frame ahead in a thread of its own, the checks, cloud and depth preview were
