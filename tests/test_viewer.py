@@ -23,6 +23,7 @@ from contact_viz.viz import rerun_log  # noqa: E402
 from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames  # noqa: E402
 from contact_viz.viz.rerun_log import open_recording  # noqa: E402
 from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, SESSION_DIAGNOSTIC_CODES  # noqa: E402
+from contact_viz.errors import SessionWarning  # noqa: E402
 from contact_viz.pipeline.extract import BadFrameWarning  # noqa: E402
 from contact_viz.model.hmm import LosoEnsemble  # noqa: E402
 from contact_viz.model.model_file import ContactModel  # noqa: E402
@@ -371,8 +372,12 @@ def test_bad_frames_in_the_middle_are_logged_and_the_run_goes_on(session_dir, tm
     shutil.copytree(session_dir, broken)
     (broken / "depth" / "000005.npy").write_bytes(b"not a numpy file")
     (broken / "left" / "000007.jpg").write_bytes(b"\x00garbage, not a JPEG")
-    with pytest.warns(BadFrameWarning, match="000005"):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         session, summary, rec = run(broken, tmp_path / "bad.rrd", DebuggerOptions())
+    assert [(w.category, str(w.message)[:13]) for w in caught] == [(BadFrameWarning, "frame 000005 "),
+                                                                   (SessionWarning, "frame 000007:")]
+    assert "000007.jpg" in str(caught[1].message)  # an image it cannot show: on the console as well
     assert summary.frames == N_FRAMES and summary.bad_frames == 1
     assert summary.diagnostic_counts["bad_frame"] == 1
     warns = [(f, text) for f, text, level in rec.texts() if level == "WARN"]
