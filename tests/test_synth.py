@@ -260,6 +260,29 @@ def test_glove_is_a_pulling_task_with_manual_labels(glove):
     assert indentation[phase == "hold"].min() >= params.pull_height_m[0] - 1e-6
 
 
+@pytest.mark.parametrize("which", ["cup", "glove"])
+def test_sensor_streams_are_what_the_session_records(which, request):
+    """sensor_streams (used without rendering by recipes/sgbm_study.py --ceiling-draws) gives the
+    force.csv readings and labels.csv of the written session, and through them the labels that
+    open_session reads."""
+    from contact_viz.io.session import open_session
+    from contact_viz.io.session_files import force_labels
+    from contact_viz.params import LabelParams
+
+    session, params = request.getfixturevalue(which)
+    force_n, manual = synth.sensor_streams(params, synth.plan_tool_track(params))
+    written = np.array([[float(r[k]) for k in ("fx", "fy", "fz")] for r in _read_csv(session / "force.csv")])
+    np.testing.assert_allclose(force_n, written, atol=5e-7)  # force.csv keeps 6 decimals
+    read = np.asarray(open_session(session).labels)
+    if which == "glove":
+        assert manual is not None and (session / "labels.csv").is_file()
+        np.testing.assert_array_equal(manual, read)
+    else:
+        assert manual is None and not (session / "labels.csv").exists()
+        np.testing.assert_array_equal(force_labels(np.linalg.norm(force_n, axis=1), LabelParams()), read)
+        assert read.min() == 0 and read.max() == 1
+
+
 def test_pulled_tissue_tents_toward_the_tool():
     params = SynthParams(phantom="glove", frames=80, **TINY)
     track = synth.plan_tool_track(params)

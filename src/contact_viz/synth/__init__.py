@@ -15,7 +15,7 @@ The package is layered; each module only uses the ones above it:
 - ``sensors`` (pure numpy/cv2): stereo depth noise and holes (``stereo_depth``), force noise
   (``measured_force``), manual-style labels (``manual_labels``);
 - ``render``: open3d ray casting and shading of a stereo pair (``Renderer``);
-- ``files``: file writing (``generate_session``).
+- ``files``: file writing (``generate_session``) and what the sensors record (``sensor_streams``).
 
 Coordinates are metres in the left camera frame (OpenCV: x right, y down, z forward). The right
 camera sits at (+baseline, 0, 0) with the same orientation, so true disparity = fx * B / Z.
@@ -23,7 +23,7 @@ camera sits at (+baseline, 0, 0) with the same orientation, so true disparity = 
 
 from __future__ import annotations
 
-from contact_viz.synth.files import davis_palette, generate_session, true_depth
+from contact_viz.synth.files import davis_palette, generate_session, sensor_streams, true_depth
 from contact_viz.synth.motion import ToolTrack, plan_tool_track, tissue_displacement
 from contact_viz.synth.params import PHANTOMS, PHASES, REFERENCE_WIDTH_PX, SynthParams
 from contact_viz.synth.render import tool_parts
@@ -54,6 +54,7 @@ __all__ = [
     "measured_force",
     "phantom_height",
     "plan_tool_track",
+    "sensor_streams",
     "stereo_camera",
     "stereo_depth",
     "surface_normals",

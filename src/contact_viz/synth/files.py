@@ -83,11 +83,20 @@ def _write_frame(out_dir: Path, stem: str, views, depth: np.ndarray, jpeg_qualit
     np.save(out_dir / "depth" / f"{stem}.npy", depth.astype(np.float32))
 
 
+def sensor_streams(params: SynthParams, track: ToolTrack) -> tuple[np.ndarray, np.ndarray | None]:
+    """What a session records beside its images: the force sensor's readings (F, 3), N (force.csv),
+    and for the pulling task the manual labels (F,) 0/1 (labels.csv; None for palpation)."""
+    force = measured_force(track, params)
+    if params.task != "pulling":
+        return force, None
+    return force, manual_labels(track.contact, params.label_jitter_frames, stream_rng(params, STREAM_LABELS))
+
+
 def _write_tables(out_dir: Path, params: SynthParams, camera: StereoCamera, track: ToolTrack) -> None:
     with atomic_write(out_dir / "K.txt") as f:
         f.write(" ".join(f"{x:.10g}" for x in camera.K.ravel()) + "\n")
         f.write(f"{camera.baseline_m:.10g}\n")
-    force = measured_force(track, params)
+    force, labels = sensor_streams(params, track)
     with atomic_write(out_dir / "force.csv") as f:
         f.write("frame,fx,fy,fz\n")
         for i, (fx, fy, fz) in enumerate(force):
@@ -100,8 +109,7 @@ def _write_tables(out_dir: Path, params: SynthParams, camera: StereoCamera, trac
                 f"{i},{track.timestamp_s[i]:.6f},{track.gap_m[i]:.6f},{track.indentation_m[i]:.6f},"
                 f"{magnitude[i]:.6f},{int(track.contact[i])},{track.phase[i]}\n"
             )
-    if params.task == "pulling":
-        labels = manual_labels(track.contact, params.label_jitter_frames, stream_rng(params, STREAM_LABELS))
+    if labels is not None:
         with atomic_write(out_dir / "labels.csv") as f:
             f.write("frame,contact\n")
             for i, label in enumerate(labels):
