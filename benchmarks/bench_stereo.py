@@ -82,7 +82,8 @@ def main() -> None:
           f"{np.isfinite(truth).mean():.1%} of pixels with true disparity; OpenCV {cv2.__version__}, "
           f"{cv2.getNumThreads()} threads")
     variants = {
-        "default (LR check, 3-way)": SGBMParams(),
+        "default (LR check, 3-way, median 5)": SGBMParams(),
+        "no median": SGBMParams(median_px=0),
         "no LR check": SGBMParams(lr_check=False),
         "block 5": SGBMParams(block_size=5),
         "mode hh (8 paths)": SGBMParams(mode="hh"),
@@ -97,7 +98,8 @@ def main() -> None:
     for width, height in ((1280, 1024), (1920, 1080)):
         big_l = cv2.resize(left, (width, height), interpolation=cv2.INTER_CUBIC)
         big_r = cv2.resize(right, (width, height), interpolation=cv2.INTER_CUBIC)
-        for name, params in (("default", SGBMParams()), ("downscale 2", SGBMParams(downscale=2))):
+        for name, params in (("default", SGBMParams()), ("no median", SGBMParams(median_px=0)),
+                             ("downscale 2", SGBMParams(downscale=2))):
             p = params.resolve(width)
             times = []
             for _ in range(max(1, args.repeats // 2)):

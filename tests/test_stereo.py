@@ -11,7 +11,8 @@ import pytest
 from PIL import Image
 
 from contact_viz.errors import SessionError
-from contact_viz.geometry.stereo import SGBMParams, disparity_to_depth, left_right_check, sgbm_disparity
+from contact_viz.geometry.stereo import (SGBMParams, disparity_to_depth, left_right_check, median_by_region,
+                                         sgbm_disparity)
 from contact_viz.io.depth_cache import DisparityCache, _decode, _encode
 from contact_viz.pipeline.depth import run_depth_command
 
@@ -116,6 +117,37 @@ def test_left_right_check_against_loop():
                 expected[y, x] = abs(disp_right[y, xr] - d) <= 0.7
     np.testing.assert_array_equal(left_right_check(disp_left, disp_right, 0.7), expected)
     assert 0 < expected.sum() < expected.size  # the example exercises both outcomes
+
+
+def test_median_by_region_is_the_windows_median_and_keeps_regions_apart():
+    """Away from holes and region borders, the median of the finite values of each window (a slow
+    literal loop); next to them, values of the pixel's own region only; NaN stays NaN."""
+    rng = np.random.default_rng(5)
+    height, width, size = 24, 30, 5
+    tool = np.zeros((height, width), bool)
+    tool[:, 18:] = True  # a near tool (disparity ~20) right of the tissue (disparity ~5) ...
+    tool[:, 8:10] = True  # ... and a thin one: a window mixing the regions takes the tissue's value there
+    disparity = np.where(tool, 20.0, 5.0) + rng.normal(0, 0.5, (height, width))
+    disparity = (np.round(disparity * 16) / 16).astype(np.float32)  # SGBM's 1/16 px
+    disparity[rng.random((height, width)) < 0.08] = np.nan
+    out = median_by_region(disparity, [tool, ~tool], size)
+    np.testing.assert_array_equal(np.isnan(out), np.isnan(disparity))
+    half = size // 2
+    checked = 0
+    for y in range(half, height - half):
+        for x in range(half, width - half):
+            window = disparity[y - half:y + half + 1, x - half:x + half + 1]
+            same = tool[y - half:y + half + 1, x - half:x + half + 1] == tool[y, x]
+            if np.isnan(disparity[y, x]):
+                continue
+            if same.all() and np.isfinite(window).all():
+                assert out[y, x] == np.median(window)
+                checked += 1
+    # next to the border too: never pulled towards the other region's disparity (15 px away)
+    finite = np.isfinite(out)
+    assert np.abs(out[finite] - np.where(tool, 20.0, 5.0)[finite]).max() < 2.5
+    assert checked > 50
+    np.testing.assert_array_equal(median_by_region(disparity, [tool, ~tool], 0), disparity)
 
 
 def test_sgbm_recovers_layers():

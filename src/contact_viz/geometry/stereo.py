@@ -25,6 +25,7 @@ parameters, so the second run is fast and a changed input never reuses a stale e
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -92,6 +93,9 @@ class SGBMParams:
     strip_probe_near_px: int = checked(8, ge=1)  # the tissue's disparity beside the tool is read from this far ...
     strip_probe_far_px: int = checked(16, ge=1)  # ... to this far right of the tool, px
     tool_rows_pad_px: int = checked(16, ge=0)  # the tool's disparity is matched on its bbox grown by this, px
+    # median of the matched disparity over this square window, px (0 = off; 3 or 5: OpenCV's float median);
+    # tool and tissue apart. 5 chosen on the study's training sessions (band within 3 mm 91.0 -> 92.4%)
+    median_px: int = checked(5, choices=(0, 3, 5))
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -197,11 +201,37 @@ def sgbm_disparity(left_rgb: np.ndarray, right_rgb: np.ndarray, params: SGBMPara
 
     ``left_rgb``, ``right_rgb``: (H, W, 3) or (H, W) uint8, rectified (corresponding pixels on the
     same row, right pixel = left pixel - disparity). Returns (H, W) float32 disparity in px
-    (multiples of 1/16 px, times ``downscale``), NaN where no reliable match was found.
+    (multiples of 1/16 px, times ``downscale``, before the median), NaN where no reliable match was found.
     """
     left, right = _as_pair(left_rgb, right_rgb)
+    p = params.resolve(left.shape[1])
+    disparity = _sgbm(left, right, p)
+    return median_by_region(disparity, [np.ones(disparity.shape, bool)], p.median_px)
+
+
+def median_by_region(disparity_px: np.ndarray, regions: Sequence[np.ndarray], size: int) -> np.ndarray:
+    """The median of the finite disparities over a ``size`` x ``size`` window at every finite pixel,
+    taken within each of ``regions`` ((H, W) bool each) apart, so that no window mixes two regions
+    (the tool and the tissue beside it); NaN stays NaN. ``size`` 0 or 1: unchanged.
+
+    Pixels outside a region or without a match take the value of the nearest matched pixel of the
+    region first (so they neither count as values nor pull the median towards 0); away from them
+    this is exactly the median of the window (tested against ``np.nanmedian``).
+    """
+    if size <= 1:
+        return disparity_px
+    out = disparity_px.copy()
+    for region in regions:
+        known = region & np.isfinite(disparity_px)
+        if known.any():
+            filled = _fill_nearest(np.where(known, disparity_px, 0).astype(np.float32), known)
+            out[known] = cv2.medianBlur(filled, size)[known]
+    return out
+
+
+def _sgbm(left: np.ndarray, right: np.ndarray, p: SGBMParams) -> np.ndarray:
+    """:func:`sgbm_disparity` of a checked pair with resolved parameters, without the median."""
     height, width = left.shape[:2]
-    p = params.resolve(width)
     n = p.downscale
     if n > 1:
         size = (max(1, width // n), max(1, height // n))
@@ -265,7 +295,7 @@ def _tool_disparity(left: np.ndarray, right: np.ndarray, tool: np.ndarray, p: SG
     if p.downscale > 1:  # keep the crop's corner on the matching grid
         y0, x0 = y0 - y0 % p.downscale, x0 - x0 % p.downscale
     out = np.full(tool.shape, np.nan, np.float32)
-    out[y0:y1, x0:x1] = sgbm_disparity(left[y0:y1, x0:x1], right[y0:y1, x0:x1], p)
+    out[y0:y1, x0:x1] = _sgbm(*_as_pair(left[y0:y1, x0:x1], right[y0:y1, x0:x1]), p)
     return out
 
 
@@ -324,16 +354,19 @@ def masked_sgbm_disparity(
     (Filling with noise, independent in the two views, was tried and is worse: OpenCV's
     Birchfield-Tomasi cost finds noise cheap to match; see docs/depth.md.)
 
-    1. The tool's disparity: plain :func:`sgbm_disparity` on a crop around the tool (inside the
+    1. The tool's disparity: plain SGBM (:func:`sgbm_disparity` without the median) on a crop around the tool (inside the
        tool it is accurate); holes on the tool are filled from the nearest matched tool pixel.
     2. The right-view tool region from it (:func:`right_view_tool_mask`).
-    3. :func:`sgbm_disparity` on the pair with both tool regions inpainted; with ``hidden_strip``, the
+    3. Plain SGBM on the pair with both tool regions inpainted; with ``hidden_strip``, the
        right view's region also covers, right of the tool, the tissue that only the right camera sees
        (:func:`_hidden_strips`): otherwise the edges of the two inpainted regions line up at the tool's
        disparity and drag it 2-4 px over the tissue right of the tool (docs/depth.md).
     4. Result: step 1 on the (left) tool, step 3 elsewhere; with ``occlusion_check``, a left
        pixel whose match falls in the right view's inpainted region (hidden behind the tool in the
        right view: no depth can be measured there; or in the strip, where it came out too wide) is NaN.
+    5. The median (``median_px``) of the tool and of the tissue apart (:func:`median_by_region`).
+       SGBM's isolated mismatches beside the tool are what the patch's minimum finds; on the
+       study's training sessions the median brings the band within 3 mm from 91.0% to 92.4%.
 
     ``tool_mask`` (H, W) bool or integer (nonzero = tool). Returns (H, W) float32 px, NaN where no
     reliable match. An empty mask gives :func:`sgbm_disparity`.
@@ -359,7 +392,7 @@ def masked_sgbm_disparity(
         inpaint_right = right_region | _hidden_strips(tool, filled, tool_disp, p.tool_margin_px,
                                                       (p.strip_probe_near_px, p.strip_probe_far_px))
     left_m, right_m = _inpaint_pair(left, right, left_region, inpaint_right)
-    disparity = sgbm_disparity(left_m, right_m, p)
+    disparity = _sgbm(left_m, right_m, p)
     disparity[left_region] = np.nan  # the margin beside the tool was inpainted: not measured
     disparity[tool] = tool_disp[tool]
     if p.occlusion_check and inpaint_right.any():
@@ -371,7 +404,7 @@ def masked_sgbm_disparity(
         hidden = np.zeros(ys.shape, bool)
         hidden[inside] = inpaint_right[ys[inside], col[inside]]  # behind the tool, or inpainted: not measured
         disparity[ys[hidden], xs[hidden]] = np.nan
-    return disparity
+    return median_by_region(disparity, [tool, ~tool], p.median_px)
 
 
 def disparity_to_depth(
