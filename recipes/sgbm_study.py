@@ -17,8 +17,9 @@ evaluated on the four (what `contact-viz fit` and `evaluate` do), and Table 1 is
   stereo pair by OpenCV SGBM as before issue 13 (no mask; 3 px blocks at 640 px, uniqueness 10);
 * SGBM, mask-aware, 3-way: the same pair matched knowing the tool mask, as issue 13 first did it
   (no hidden strip; 3 px blocks, uniqueness 10);
-* SGBM, mask-aware: the default (contact_viz.geometry.stereo.masked_sgbm_disparity with the hidden
-  strip, 5 px blocks at 640 px, uniqueness 15).
+* SGBM, mask-aware, no median: contact_viz.geometry.stereo.masked_sgbm_disparity with the hidden
+  strip, 5 px blocks at 640 px, uniqueness 15 (the default until the median);
+* SGBM, mask-aware: the default (the same, then the 5x5 median of the disparity, tool and tissue apart).
 
 Then the exact gap: the signal of the generator's true tool-tissue gap (truth.csv) with the same
 labels, what a depth map without error would give; no depth source can be expected above it. The
@@ -71,11 +72,12 @@ TRAIN = [(f"cup_train_{k}", "cup", 1300 + k) for k in range(6)]
 TEST = [("cup_test", "cup", 1310), ("kidney_test", "kidney", 1311), ("liver_test", "liver", 1312),
         ("glove_test", "glove", 1313)]
 # the mask-aware matcher as issue 13 first had it: 3 px blocks at 640 px, uniqueness 10, no hidden strip
-FIRST_SGBM = SGBMParams(width_per_block_px=320.0, uniqueness_ratio=10, hidden_strip=False)
+FIRST_SGBM = SGBMParams(width_per_block_px=320.0, uniqueness_ratio=10, hidden_strip=False, median_px=0)
 SOURCES = {  # depth source -> SGBM parameters (None = the session's depth/)
     "rendered": None,
     "SGBM": replace(FIRST_SGBM, tool_mask_aware=False),
     "SGBM, mask-aware, 3-way": FIRST_SGBM,
+    "SGBM, mask-aware, no median": replace(SGBMParams(), median_px=0),
     "SGBM, mask-aware": SGBMParams(),
 }
 METHODS = {  # Table 1 row group -> (depth source, patch parameters)
@@ -83,6 +85,7 @@ METHODS = {  # Table 1 row group -> (depth source, patch parameters)
     "SGBM, as before issue 13": ("SGBM", PatchParams(reject_bleeding=False)),
     "SGBM + the patch's bleeding test": ("SGBM", PatchParams()),
     "SGBM, mask-aware (3-way, 3 px blocks) + bleeding test": ("SGBM, mask-aware, 3-way", PatchParams()),
+    "SGBM, mask-aware, no median + bleeding test": ("SGBM, mask-aware, no median", PatchParams()),
     "SGBM, mask-aware + bleeding test (default)": ("SGBM, mask-aware", PatchParams()),
 }
 EXACT = "exact gap (truth.csv; no depth error: the ceiling of every depth source)"
@@ -323,11 +326,12 @@ SWEEP = {  # --band-sweep: mask-aware SGBM variants compared on the training ses
     "... no left-right check, disp12MaxDiff off": replace(FIRST_SGBM, lr_check=False, disp12_max_diff=-1),
     "... mode HH (8 paths; O(W H D) memory)": replace(FIRST_SGBM, mode="hh"),
     "hidden strip, 3 px blocks, uniqueness 10": replace(FIRST_SGBM, hidden_strip=True),
-    "hidden strip, 5 px blocks, uniqueness 15 (default)": SGBMParams(),
-    "hidden strip, 7 px blocks, uniqueness 15": replace(SGBMParams(), block_size=7),
-    "hidden strip, 5 px blocks, uniqueness 15, tool margin 2 px": replace(SGBMParams(), tool_margin_px=2),
-    "hidden strip, 5 px blocks, uniqueness 15, tool margin 3 px": replace(SGBMParams(), tool_margin_px=3),
-    "hidden strip, 7 px blocks, uniqueness 15, tool margin 2 px": replace(SGBMParams(), block_size=7, tool_margin_px=2),
+    "hidden strip, 5 px blocks, uniqueness 15 (no median)": replace(SGBMParams(), median_px=0),
+    "hidden strip, 7 px blocks, uniqueness 15 (no median)": replace(SGBMParams(), block_size=7, median_px=0),
+    "... 5 px blocks, tool margin 2 px (no median)": replace(SGBMParams(), tool_margin_px=2, median_px=0),
+    "... 5 px blocks, tool margin 3 px (no median)": replace(SGBMParams(), tool_margin_px=3, median_px=0),
+    "... 5 px blocks, median 3 px": replace(SGBMParams(), median_px=3),
+    "... 5 px blocks, median 5 px (default)": SGBMParams(),
 }
 SWEEP_NEAR_PX = (2, 3, 4)  # the profile's distances from the mask edge printed, px
 
