@@ -201,7 +201,8 @@ def sgbm_disparity(left_rgb: np.ndarray, right_rgb: np.ndarray, params: SGBMPara
 
     ``left_rgb``, ``right_rgb``: (H, W, 3) or (H, W) uint8, rectified (corresponding pixels on the
     same row, right pixel = left pixel - disparity). Returns (H, W) float32 disparity in px
-    (multiples of 1/16 px, times ``downscale``, before the median), NaN where no reliable match was found.
+    (multiples of 1/16 px, times ``downscale``), NaN where no reliable match was found; with
+    ``median_px``, the median of the matched disparities around each (:func:`median_by_region`).
     """
     left, right = _as_pair(left_rgb, right_rgb)
     p = params.resolve(left.shape[1])
@@ -216,7 +217,8 @@ def median_by_region(disparity_px: np.ndarray, regions: Sequence[np.ndarray], si
 
     Pixels outside a region or without a match take the value of the nearest matched pixel of the
     region first (so they neither count as values nor pull the median towards 0); away from them
-    this is exactly the median of the window (tested against ``np.nanmedian``).
+    this is exactly the median of the window (tested against ``np.median``). An odd window's median
+    is one of its values, so 1/16 px disparities stay 1/16 px multiples.
     """
     if size <= 1:
         return disparity_px
@@ -354,8 +356,9 @@ def masked_sgbm_disparity(
     (Filling with noise, independent in the two views, was tried and is worse: OpenCV's
     Birchfield-Tomasi cost finds noise cheap to match; see docs/depth.md.)
 
-    1. The tool's disparity: plain SGBM (:func:`sgbm_disparity` without the median) on a crop around the tool (inside the
-       tool it is accurate); holes on the tool are filled from the nearest matched tool pixel.
+    1. The tool's disparity: plain SGBM (:func:`sgbm_disparity` without the median) on a crop around
+       the tool (inside the tool it is accurate); holes on the tool are filled from the nearest
+       matched tool pixel.
     2. The right-view tool region from it (:func:`right_view_tool_mask`).
     3. Plain SGBM on the pair with both tool regions inpainted; with ``hidden_strip``, the
        right view's region also covers, right of the tool, the tissue that only the right camera sees
