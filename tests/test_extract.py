@@ -278,8 +278,11 @@ def test_ctrl_c_stops_every_process_and_writes_nothing(tmp_path):
 
     root = _long_session(tmp_path)
     out = tmp_path / "out" / "features.csv"
+    # SIGINT as a terminal leaves it: a test run started in the background (`cmd &` in a script)
+    # inherits SIGINT ignored, and an ignored signal stays ignored across exec
     run = subprocess.Popen([*CLI, "extract", str(root), "-o", str(out), "--processes", "2"],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(2.0)  # started, workers running
     assert run.poll() is None, run.communicate()
     os.killpg(run.pid, signal.SIGINT)  # what a terminal does: the whole process group
