@@ -161,25 +161,21 @@ def table1(signals: dict[str, tuple[np.ndarray, np.ndarray]], score_labels: dict
     return rows
 
 
-def truth_contact(directory: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """The generator's physical contact (truth.csv ``contact``, 0/1) and true force magnitude (N) per frame."""
+def truth_column(directory: Path, name: str, column: str) -> np.ndarray:
+    """One column of a session's truth.csv per frame, float64 (``contact``: physical contact 0/1;
+    ``gap_m``: the true tool-tissue gap, 0 in contact)."""
     import csv
 
     with (directory / "sessions" / name / "truth.csv").open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    return (np.array([int(r["contact"]) for r in rows], np.int64),
-            np.array([float(r["force_true_n"]) for r in rows], np.float64))
+        return np.array([float(r[column]) for r in csv.DictReader(handle)], np.float64)
 
 
 def exact_gap_signals(directory: Path, cache_dir: Path, first: int | None) -> dict:
     """The signal of the generator's true tool-tissue gap (truth.csv ``gap_m``, 0 in contact) with the
     sessions' own labels: what a perfect distance would give the HMM, the ceiling of every depth source."""
-    import csv
-
     out = {}
     for name, _, _ in TRAIN + TEST:
-        with (directory / "sessions" / name / "truth.csv").open(newline="") as handle:
-            gap_m = np.array([float(r["gap_m"]) for r in csv.DictReader(handle)], np.float64)
+        gap_m = truth_column(directory, name, "gap_m")
         labels = np.asarray(open_source(directory, "rendered", name, cache_dir).labels)
         count = len(gap_m) if first is None else min(first, len(gap_m))
         out[name] = (distance_signal(gap_m[:count], PatchParams().eps_m), labels[:count])
@@ -482,17 +478,17 @@ def main(argv=None) -> int:
         print(format_table(rows))
     # The force labels (>= 2 N; the glove's manual labels) miss touches under 2 N, which the distance sees as
     # contact: the same models scored against the generator's physical contact, and how many such frames.
-    truth = {name: truth_contact(directory, name) for name, _, _ in TRAIN + TEST}
+    truth = {name: truth_column(directory, name, "contact").astype(np.int64) for name, _, _ in TRAIN + TEST}
     light = {}
     for name, _, _ in TRAIN + TEST:
-        contact, force = truth[name]
+        contact = truth[name]
         count = len(contact) if args.first_frames is None else min(args.first_frames, len(contact))
         labels = np.asarray(open_source(directory, "rendered", name, cache_dir).labels)[:count]
         light[name] = int(np.sum((contact[:count] == 1) & (labels == 0)))
     results["contact_labelled_0"] = light
     print("\nFrames in physical contact (truth.csv) but labelled no contact (force under 2 N; glove: manual "
           "labels' edges): " + ", ".join(f"{n} {k}" for n, k in light.items()))
-    physical = {name: truth[name][0] for name, _, _ in TEST}
+    physical = {name: truth[name] for name, _, _ in TEST}
     results["tables_physical_contact"] = {}
     for method in signals:
         results["tables_physical_contact"][method] = table1(signals[method], physical)[MACRO_ROW]

@@ -23,8 +23,8 @@ calibration of one rectified frame and returns :class:`FrameMeasures`, the quant
 Everything runs on the tool's bounding box padded by ``pad_frac`` x width, and at a reduced
 resolution on large frames: every n-th pixel of the mask and the depth (nearest sampling: no depth
 is mixed across the tool's edge) and the grey images shrunk n times by pixel averaging
-(:func:`shrink_grey`), n = :func:`analysis_step` (2 at 1080p with the default
-``analysis_width_px`` 960). Areas, positions and widths are reported in pixels of the full image.
+(:func:`shrink_grey`), n = :func:`analysis_step` (4 at 1080p with the default
+``analysis_width_px`` 480). Areas, positions and widths are reported in pixels of the full image.
 No I/O.
 """
 

@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 
 from contact_viz import __version__
@@ -24,18 +23,13 @@ from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, FrameChecker, Patch
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
 from contact_viz.errors import SessionError
 from contact_viz.geometry.patch import compute_patch
-from contact_viz.io.decoders import read_jpeg
+from contact_viz.io.decoders import JPEG_REDUCTIONS, read_jpeg_reduced
 from contact_viz.io.session import JPEG_SUFFIXES, BadFrame, Session, open_session
 from contact_viz.params import PatchParams
 
 __all__ = ["CheckReport", "FrameRecord", "check_session", "grey_step", "load_grey", "measure_session_frame"]
 
 CHUNK_FRAMES = 8  # frames a process claims at a time, frames
-
-
-# cv2 flags decoding a JPEG to grey at 1/n size (libjpeg DCT scaling: 1080p pair 13 -> 7 ms of CPU at n = 2)
-_REDUCED_GREY = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
-                 8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
 
 
 def grey_step(session: Session, params: DiagnosticParams) -> int:
@@ -55,14 +49,9 @@ def load_grey(session: Session, side: str, index: int, step: int = 1, rgb: np.nd
     path = session.image_path(side, index)
     if path is None:
         return None
+    if session.rectification is None and path.suffix.lower() in JPEG_SUFFIXES and step in JPEG_REDUCTIONS:
+        return read_jpeg_reduced(path, step, session.image_size, side, grey=True)
     height, width = session.image_size
-    size = (-(-height // step), -(-width // step))
-    if session.rectification is None and path.suffix.lower() in JPEG_SUFFIXES and step in _REDUCED_GREY:
-        grey = read_jpeg(path, _REDUCED_GREY[step], f"a JPEG {side} image")
-        if grey.shape != size:
-            raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
-                                     f"found about {grey.shape[0] * step}x{grey.shape[1] * step}")
-        return grey
     if rgb is None:
         frame = session.load_frame(index, layers=(side,))
         if isinstance(frame, BadFrame):
@@ -212,7 +201,6 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         frames["force_lag"] = (list(range(n)), f"force lags the signal by {lag.lag_frames} frames "
                                                f"({lag.lag_s:+.3f} s; correlation {lag.correlation:.2f} vs "
                                                f"{lag.zero_lag_correlation:.2f} at 0)")
-    unreadable = [r.index for r in records if r.image_problem]
     gaps = frame_time_problems(session.timestamps_s, params)
     if gaps:
         frames["frame_times"] = (gaps, f"{len(gaps)} frame(s) with a time step <= 0 or a gap")
@@ -222,9 +210,14 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         counts={code: len(idx) for code, (idx, _) in frames.items()},
         force_lag=lag, params=params, elapsed_s=time.perf_counter() - started,
         messages={code: msg for code, (_, msg) in frames.items()},
-        unreadable_images=next(((unreadable, f"frame {r.index}: {r.image_problem}") for r in records
-                                if r.image_problem), None),
+        unreadable_images=_unreadable_images(records),
     )
+
+
+def _unreadable_images(records: list[FrameRecord]) -> tuple[list[int], str] | None:
+    """The frames with an unreadable image and the first one's message (CheckReport.unreadable_images)."""
+    bad = [r for r in records if r.image_problem]
+    return None if not bad else ([r.index for r in bad], f"frame {bad[0].index}: {bad[0].image_problem}")
 
 
 def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_width: int) -> dict:

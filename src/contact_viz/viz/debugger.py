@@ -41,7 +41,7 @@ from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import PatchParams, check_fields, checked, to_dict
 from contact_viz.geometry.pointcloud import CloudParams, decimated_intrinsics, depth_cloud, depth_preview, patch_geometry
 from contact_viz.io.prefetch import prefetched
-from contact_viz.io.decoders import read_jpeg, read_jpeg_bytes
+from contact_viz.io.decoders import JPEG_REDUCTIONS, read_jpeg_bytes, read_jpeg_reduced
 from contact_viz.io.session import JPEG_SUFFIXES, Session, read_rgb
 from contact_viz.viz.video import BackgroundEncoder, VideoEncoder, VideoParams, even_size, rgb_to_i420
 from contact_viz.geometry.kinematics import frame_samples, kinematic_tip
@@ -54,9 +54,6 @@ __all__ = [
     "select_frames",
 ]
 
-# cv2 flags decoding a JPEG at 1/n size (libjpeg DCT scaling: much faster than a full decode)
-_REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
-                  8: cv2.IMREAD_REDUCED_COLOR_8}
 IMAGE_MODES = ("video", "jpeg", "raw")  # how the images are logged: video stream, JPEG, decoded RGB
 
 
@@ -86,7 +83,7 @@ class DebuggerOptions:
     points: bool = True  # log the RGB point cloud
     cloud: CloudParams = field(default_factory=CloudParams)  # point cloud density
     # decode left JPEGs at 1/n size for the point colours (1, 2, 4 or 8)
-    color_reduction: int = checked(2, choices=_REDUCED_COLOR)
+    color_reduction: int = checked(2, choices=JPEG_REDUCTIONS)
     patch_params: PatchParams = field(default_factory=PatchParams)  # the patch (must match the model's)
     diagnostics: DiagnosticParams = field(default_factory=DiagnosticParams)  # thresholds of the checks
     # flush the recording to its sinks every this many frames (bounds memory and loss), frames
@@ -196,21 +193,13 @@ class _ImageReader:
         opts = self.options
         rectification = self.session.rectification
         if opts.images == "video" and step > 1 and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
-            # DCT scaling: a quarter of a full decode's time
-            bgr = read_jpeg(path, _REDUCED_COLOR[step], f"a JPEG {side} image")
-            if bgr.shape[:2] != (-(-height // step), -(-width // step)):
-                raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
-                                         f"found about {bgr.shape[0] * step}x{bgr.shape[1] * step}")
+            bgr = read_jpeg_reduced(path, step, (height, width), side)  # a quarter of a full decode's time
             return None, None, rgb_to_i420(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)), None, None
         if opts.images == "jpeg" and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
             data = read_jpeg_bytes(path, f"a JPEG {side} image")
             colors = None
             if want_colors:
-                n = opts.color_reduction
-                bgr = read_jpeg(path, _REDUCED_COLOR[n], f"a JPEG {side} image", data)
-                if bgr.shape[:2] != (-(-height // n), -(-width // n)):
-                    raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
-                                             f"found about {bgr.shape[0] * n}x{bgr.shape[1] * n}")
+                bgr = read_jpeg_reduced(path, opts.color_reduction, (height, width), side, data=data)
                 colors = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             return data.tobytes(), None, None, colors, None
         rgb = read_rgb(path)
