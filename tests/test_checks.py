@@ -118,7 +118,8 @@ def test_checks_at_half_resolution_measure_what_full_resolution_measures(case):
                       evidence=True)
     assert m.tool_area_px == 4 * ref.tool_area_px and m.touches_border == ref.touches_border
     assert m.shaft_width_px == 2 * ref.shaft_width_px and m.extra_blob_px == 4 * ref.extra_blob_px
-    for name in ("inside_far_fraction", "outside_tool_fraction", "hole_fraction", "width_ratio", "residual_ratio"):
+    for name in ("inside_far_fraction", "outside_tool_fraction", "hole_fraction", "beside_valid_fraction",
+                 "width_ratio", "residual_ratio"):
         assert getattr(m, name) == pytest.approx(getattr(ref, name), rel=1e-5, abs=1e-6), name
     # the image gradient is smoothed by the shrinking there, by a 3x3 Gaussian at full size: same verdict
     assert (m.edge_support < params.min_edge_support) == (ref.edge_support < params.min_edge_support)

@@ -67,12 +67,23 @@ def test_resolve_sizes_from_width():
     # By hand: 741 / 8 = 92.6 -> 96; 741 / 128 = 5.8 -> 6 -> next odd 7.
     p = SGBMParams().resolve(741)
     assert (p.num_disparities, p.block_size) == (96, 7)
-    # 1920 / 8 = 240 (a multiple of 16); 1920 / 128 = 15 (odd).
-    p = SGBMParams().resolve(1920)
+    assert p.downscale == 1  # 741 <= match_width_px (960): matched as it is
+    # Wider images are matched at the smallest downscale bringing them to <= 960 px:
+    # 1920 -> 2 (960 px: 960 / 8 = 120 disparities, 960 / 128 = 7.5 -> 8 -> 9 px blocks); 1280 -> 2 (640 px);
+    # 961 -> 2 (480 px); 2880 -> 3.
+    for width, downscale in ((1920, 2), (1280, 2), (960, 1), (961, 2), (640, 1), (2880, 3)):
+        p = SGBMParams().resolve(width)
+        assert p.downscale == downscale
+        matched = width // downscale
+        block = max(3, round(matched / 128))
+        assert (p.num_disparities, p.block_size) == (math.ceil(math.ceil(matched / 8) / 16) * 16,
+                                                     block + 1 - block % 2)
+    assert (SGBMParams().resolve(1920).num_disparities, SGBMParams().resolve(1920).block_size) == (128, 9)
+    # Matched at full size on request: 1920 / 8 = 240 (a multiple of 16); 1920 / 128 = 15 (odd).
+    p = SGBMParams(downscale=1).resolve(1920)
     assert (p.num_disparities, p.block_size) == (240, 15)
-    # 1280 / 8 = 160; 1280 / 128 = 10 -> 11. 640 px: 80, 5. Downscale 2 sizes for 640 px too.
-    assert (SGBMParams().resolve(1280).num_disparities, SGBMParams().resolve(1280).block_size) == (160, 11)
-    assert (SGBMParams().resolve(640).num_disparities, SGBMParams().resolve(640).block_size) == (80, 5)
+    p = SGBMParams(downscale=1).resolve(1280)  # 1280 / 8 = 160; 1280 / 128 = 10 -> 11
+    assert (p.num_disparities, p.block_size) == (160, 11)
     p = SGBMParams(downscale=2).resolve(1280)
     assert (p.num_disparities, p.block_size) == (80, 5)
     # 160 px (the smallest synth sessions): 160 / 128 = 1.25 -> 1 -> at least 3.

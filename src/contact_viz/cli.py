@@ -360,7 +360,8 @@ def view(
         opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
                                 web_port=web_port, blueprint=default_blueprint(
                                     with_right=right and session.has_right, with_model=model is not None,
-                                    with_kinematics=hand_eye is not None))
+                                    with_kinematics=hand_eye is not None,
+                                    with_depth_kind=session.depth_source == "sgbm"))
     except (ValueError, IndexError) as exc:
         _fail(str(exc))
     if opened.web_viewer_url:

@@ -13,6 +13,10 @@ calibration of one rectified frame and returns :class:`FrameMeasures`, the quant
   covers tissue, or the depth is shifted), ``outside_tool_fraction`` = share of a ring just
   outside the mask whose depth equals ``ref`` (the tool's depth bleeds onto tissue, or is shifted);
 * ``hole_fraction``: invalid depth on the tool and in the band around it (two shaft widths);
+* ``beside_valid_fraction``: valid depth in the band just outside the mask (out to the outer end of
+  that ring): where it is low the depth source failed beside the tool (and the depth-against-mask
+  shares rest on a few pixels). ``inside_far_fraction`` is NaN where the rim's depth is mostly
+  invalid (valid on less than ``RIM_MIN_VALID`` of it): its share would rest on a minority of the rim;
 * ``width_ratio``: physical shaft width (inscribed-disc diameter in px x depth of the shaft axis /
   fx) over the instrument's diameter (depth scale error; wrong mask);
 * ``residual_ratio``: photometric residual of the right image warped into the left view by the
@@ -45,6 +49,7 @@ THUMB_SIZE = (32, 18)  # (width, height) of the grey thumbnail kept per frame, p
 RESIDUAL_DELTA = 0.15  # the alternative disparities are (1 +- this) x the depth's, fraction
 RESIDUAL_BOX = 5  # side of the box filter over the absolute residual, px
 SOBEL_NORM = 8.0  # Sobel 3x3 output / this = grey levels per px
+RIM_MIN_VALID = 0.5  # inside_far_fraction is measured where at least this share of the rim has valid depth, 0-1
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,8 @@ class FrameMeasures:
     inside_far_fraction: float  # share of the mask's inner rim with depth behind the nearby tool depth, 0-1
     outside_tool_fraction: float  # share of the outside ring with depth at the nearby tool depth, 0-1
     hole_fraction: float  # share of invalid depth on the tool and the band around it, 0-1
+    # share of valid depth in the band just outside the mask (0 < distance <= the ring's outer end), 0-1
+    beside_valid_fraction: float = field(default=math.nan, kw_only=True)
     shaft_width_px: float  # diameter of the largest disc inside the mask, px
     width_ratio: float  # physical shaft width / tool diameter, ratio
     residual_ratio: float  # stereo residual at the depth / at a 15% different disparity, ratio
@@ -225,6 +232,9 @@ def measure_frame(
     hole_fraction = float(1.0 - valid[region].mean())
 
     # depth against the mask: the nearby tool depth, carried outwards
+    lo, hi = max(params.ring_frac_lo * width, 1.5), max(params.ring_frac_hi * width, 3.5)
+    beside = (dt_out > 0) & (dt_out <= hi) & off
+    beside_valid = float(valid[beside].mean()) if beside.any() else nan
     inside_far = outside_tool = nan
     interior = (dt_in > 2.5) & valid
     k = max(3, int(round(0.03 * width)) | 1)
@@ -236,14 +246,14 @@ def measure_frame(
                                                     labelType=cv2.DIST_LABEL_PIXEL)
         lut = np.zeros(int(labels.max()) + 1, np.float32)
         lut[labels[source]] = num[source] / den[source]
-        lo, hi = max(params.ring_frac_lo * width, 1.5), max(params.ring_frac_hi * width, 3.5)
         ring = (dt_out > lo) & (dt_out <= hi) & valid & off
         if ring.any():
             ref = lut[labels[ring]]
             same = np.abs(z0[ring] - ref) < np.maximum(params.same_depth_m, params.same_depth_rel * ref)
             outside_tool = float(same.mean())
-        rim = m & (dt_in <= max(lo, 2.5) + 1) & valid & off
-        if rim.any():
+        rim_all = m & (dt_in <= max(lo, 2.5) + 1) & off
+        rim = rim_all & valid
+        if rim.any() and rim.sum() >= RIM_MIN_VALID * rim_all.sum():
             ref = lut[labels[rim]]
             far = z0[rim] - ref > np.maximum(params.far_depth_m, params.far_depth_rel * ref)
             inside_far = float(far.mean())
@@ -297,4 +307,5 @@ def measure_frame(
                            near if residual_img is not None else np.zeros(m.shape, bool),
                            None if left_grey is None else np.asarray(left_grey), step)
     return FrameMeasures(area, touches, extra_px, extra_xy, edge_support, inside_far, outside_tool, hole_fraction,
-                         shaft_px * step, width_ratio, residual_ratio, residual_grey, digest, thumb, ev)
+                         shaft_px * step, width_ratio, residual_ratio, residual_grey, digest, thumb, ev,
+                         beside_valid_fraction=beside_valid)

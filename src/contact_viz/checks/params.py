@@ -45,6 +45,11 @@ class DiagnosticParams:
     far_depth_m: float = checked(0.004, gt=0)  # "behind the tool": farther than the nearby tool depth by this, m ...
     far_depth_rel: float = checked(0.05, gt=0)  # ... or this share of it, whichever is larger, fraction
     max_hole_fraction: float = checked(0.4, ge=0, le=1)  # share of invalid depth on and around the tool that fires, 0-1
+    # "no depth beside the tool" (depth_holes, the depth source failed there, not the mask): valid depth on less than
+    # this share of the band just outside the mask (out to ring_frac_hi); mask_on_tissue and tool_depth_outside
+    # are then skipped (their shares would rest on the few pixels with depth), 0-1.
+    # (SGBM on synthetic sessions 160-640 px wide: 20-60% there, its usual gap at the tool's edge; failed: 4-7%)
+    min_beside_valid_fraction: float = checked(0.15, ge=0, le=1)
     # ---- scale and stereo ----
     # the instrument's shaft diameter (--tool-diameter-mm; da Vinci 8 mm, many others 5 mm), mm
     tool_diameter_mm: float = checked(8.0, gt=0)

@@ -5,6 +5,13 @@ needs of the previous frames), on :class:`~contact_viz.checks.frame.FrameMeasure
 frame's patch numbers. Every check also has a *score* = measured value / threshold, oriented so
 that > 1 means "fires" (the viewer plots the scores on one axis). Session checks (force lag,
 frame times) are in :mod:`contact_viz.checks.session`. Pure Python; no I/O.
+
+Where the depth beside the tool is missing (``beside_valid_fraction`` below
+``min_beside_valid_fraction``), ``depth_holes`` fires naming the depth source, not the mask
+(:func:`no_depth_beside_cause`: "no depth beside the tool: stereo failed here" for SGBM depth), and
+the depth-against-mask checks (``mask_on_tissue``, ``tool_depth_outside``) are skipped: their
+shares would rest on the few pixels with depth (``inside_far_fraction`` is not measured either where
+the rim's depth is mostly invalid).
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -20,7 +28,10 @@ from contact_viz.checks.params import DiagnosticParams
 
 ENTERING_FRAMES = 5  # a tool's first frames in view (at the border) do not raise no_patch, frames
 
-__all__ = ["CHECKS", "Diagnostic", "FrameChecker", "PatchNumbers", "SESSION_CHECKS", "fired_ranges"]
+__all__ = ["CHECKS", "Diagnostic", "DepthSource", "FrameChecker", "PatchNumbers", "SESSION_CHECKS", "fired_ranges",
+           "no_depth_beside_cause"]
+
+DepthSource = Literal["depth", "disparity", "sgbm"]  # where a session's depth comes from (io.session.DEPTH_SOURCES)
 
 # code -> (what it measures, likely cause); in the order the viewer stacks them.
 CHECKS: dict[str, tuple[str, str]] = {
@@ -42,6 +53,16 @@ CHECKS: dict[str, tuple[str, str]] = {
     "no_patch": ("tool present but no valid patch", "depth holes or a mask too thin for the patch"),
     "distance_jump": ("distance jumped while the patch stayed put", "a depth or mask failure at this frame"),
 }
+NO_DEPTH_BESIDE = "no depth beside the tool"  # depth_holes' cause where the depth beside the tool is missing
+
+
+def no_depth_beside_cause(depth_source: str) -> str:
+    """The likely cause when the depth beside the tool is missing, worded for where the depth came from:
+    SGBM stereo (``"sgbm"``), or a depth or disparity file (a learned depth source)."""
+    failed = "stereo" if depth_source == "sgbm" else "the depth source"
+    return f"{NO_DEPTH_BESIDE}: {failed} failed here"
+
+
 SESSION_CHECKS: dict[str, tuple[str, str]] = {
     "force_lag": ("force peaks lag the distance signal", "force and frames out of sync (time offset)"),
     "frame_times": ("frame times not increasing or with gaps", "dropped frames or a bad frames.csv"),
@@ -56,6 +77,12 @@ class Diagnostic:
     index: int  # frame index in the session
     message: str  # one line for a log: what, the measured value against the threshold, the likely cause
     value: float  # the measured quantity (units as in the message; NaN when there is none)
+    cause: str = ""  # the likely cause the message names; "" = the code's usual one (CHECKS / SESSION_CHECKS)
+
+    @property
+    def likely_cause(self) -> str:
+        """The likely cause the message names."""
+        return self.cause or (CHECKS.get(self.code) or SESSION_CHECKS[self.code])[1]
 
 
 @dataclass(frozen=True)
@@ -79,11 +106,16 @@ def fired_ranges(frames: list[int]) -> list[tuple[int, int]]:
 
 
 class FrameChecker:
-    """Runs the per-frame checks in frame order; ``check`` returns (diagnostics fired, scores)."""
+    """Runs the per-frame checks in frame order; ``check`` returns (diagnostics fired, scores).
 
-    def __init__(self, params: DiagnosticParams = DiagnosticParams(), image_width: int = 1920) -> None:
+    ``depth_source``: where the session's depth comes from (``Session.depth_source``); it words the
+    cause when the depth beside the tool is missing (:func:`no_depth_beside_cause`)."""
+
+    def __init__(self, params: DiagnosticParams = DiagnosticParams(), image_width: int = 1920,
+                 depth_source: DepthSource = "depth") -> None:
         self.params = params
         self.width = image_width
+        self.depth_source = depth_source
         self._prev: FrameMeasures | None = None
         self._prev_patch: PatchNumbers | None = None
         self._last_seen: FrameMeasures | None = None
@@ -99,8 +131,9 @@ class FrameChecker:
         fired: list[Diagnostic] = []
         scores: dict[str, float] = {}
 
-        def fire(code: str, text: str, value: float) -> None:
-            fired.append(Diagnostic(code, index, f"{CHECKS[code][0]}: {text}: {CHECKS[code][1]}", float(value)))
+        def fire(code: str, text: str, value: float, cause: str = "") -> None:
+            fired.append(Diagnostic(code, index, f"{CHECKS[code][0]}: {text}: {cause or CHECKS[code][1]}",
+                                    float(value), cause))
 
         def score(code: str, value: float, threshold: float, above: bool = True) -> bool:
             if not math.isfinite(value):
@@ -132,13 +165,24 @@ class FrameChecker:
             if score("mask_image_edges", m.edge_support, p.min_edge_support, above=False):
                 fire("mask_image_edges", f"{m.edge_support:.0%} of the contour on an image edge "
                                          f"(< {p.min_edge_support:.0%})", m.edge_support)
-            if score("mask_on_tissue", m.inside_far_fraction, p.max_inside_far_fraction):
+            # no depth beside the tool (NaN = not measured: not missing): the depth source failed there, and the
+            # depth-against-mask shares would rest on the few pixels with depth (the mask is not to blame)
+            beside = m.beside_valid_fraction
+            no_beside = beside < p.min_beside_valid_fraction  # False for NaN
+            if not no_beside and score("mask_on_tissue", m.inside_far_fraction, p.max_inside_far_fraction):
                 fire("mask_on_tissue", f"{m.inside_far_fraction:.1%} of the rim (> {p.max_inside_far_fraction:.1%})",
                      m.inside_far_fraction)
-            if score("tool_depth_outside", m.outside_tool_fraction, p.max_outside_tool_fraction):
+            if not no_beside and score("tool_depth_outside", m.outside_tool_fraction, p.max_outside_tool_fraction):
                 fire("tool_depth_outside", f"{m.outside_tool_fraction:.0%} of the ring outside "
                                            f"(> {p.max_outside_tool_fraction:.0%})", m.outside_tool_fraction)
-            if score("depth_holes", m.hole_fraction, p.max_hole_fraction):
+            holes = score("depth_holes", m.hole_fraction, p.max_hole_fraction)
+            if no_beside:
+                missing = p.min_beside_valid_fraction / beside if beside > 0 else math.inf
+                scores["depth_holes"] = float(min(max(missing, scores.get("depth_holes", 0.0)), 10.0))
+                fire("depth_holes", f"{beside:.0%} valid just outside the mask (< {p.min_beside_valid_fraction:.0%}; "
+                                    f"{m.hole_fraction:.0%} invalid on and around the tool)", beside,
+                     no_depth_beside_cause(self.depth_source))
+            elif holes:
                 fire("depth_holes", f"{m.hole_fraction:.0%} invalid (> {p.max_hole_fraction:.0%})", m.hole_fraction)
             if math.isfinite(m.width_ratio) and m.width_ratio > 0:
                 off = max(m.width_ratio, 1.0 / m.width_ratio)

@@ -83,7 +83,19 @@ class SGBMParams:
     lr_check: bool = True  # run the right-view match and drop pixels failing the left-right check
     lr_max_diff_px: float = checked(1.0, ge=0)  # left-right consistency tolerance, px
     mode: str = checked("sgbm_3way", choices=_MODES)  # OpenCV mode: sgbm, sgbm_3way (fast), hh (full 8-path, slow), hh4
-    downscale: int = checked(1, ge=1)  # match at 1/downscale resolution, then upsample the disparity (faster, coarser)
+    # match at 1/downscale resolution, then upsample the disparity; None = from match_width_px
+    downscale: int | None = checked(None, ge=1)
+    # when downscale is None: the smallest downscale that brings the width to at most this, px (741 -> 1,
+    # 1280 -> 2, 1920 -> 2). Weak tissue texture then spans enough grey levels per pixel: matched at 1920 px, most
+    # pixels beside the tool go unmatched; at 640 px the patch's band (3-11 px of the image) hugs the tool edge
+    # (1080p, |distance - rendered| 3.5 mm at 640, 2.0 at 960 px: benchmarks/bench_depth_region.py, docs/depth.md)
+    match_width_px: int = checked(960, ge=16)
+    # Depth only where the patch reads it (geometry.stereo_region), when the frame's tool mask is known:
+    region: bool = True  # match finely only around the tools; elsewhere the coarse pass's disparity
+    region_px: int = checked(24, ge=0)  # the fine region: the tools and the background within this of them, px
+    coarse_width_px: int = checked(480, ge=16)  # the coarse full-frame pass matches at most this wide, px
+    tile_rows_px: int = checked(48, ge=8)  # rows of one fine tile, px at the matching resolution
+    range_margin_px: int = checked(4, ge=0)  # a tile's search range: the coarse disparities +- this, matching px
     # Mask-aware matching (masked_sgbm_disparity), used when the frame's tool mask is known:
     tool_mask_aware: bool = True  # match the tissue with the tool removed (inpainted) from both views
     tool_margin_px: int = checked(1, ge=0)  # the tool region removed grows by this in both views, px
@@ -112,7 +124,8 @@ class SGBMParams:
 
         The sizes refer to the matching resolution (width / downscale).
         """
-        width = max(1, int(width_px) // self.downscale)
+        downscale = self.downscale if self.downscale is not None else max(1, -(-int(width_px) // self.match_width_px))
+        width = max(1, int(width_px) // downscale)
         num = self.num_disparities
         if num is None:
             num = max(SUBPIXEL, -(-int(np.ceil(width * self.disparity_range_fraction)) // SUBPIXEL) * SUBPIXEL)
@@ -120,12 +133,12 @@ class SGBMParams:
         if block is None:
             block = max(_MIN_BLOCK, int(round(width / self.width_per_block_px)))
             block += 1 - block % _BLOCK_STEP  # next odd number
-        if (num + max(self.min_disparity, 0)) * self.downscale * SUBPIXEL >= _MAX_CODE:
+        if (num + max(self.min_disparity, 0)) * downscale * SUBPIXEL >= _MAX_CODE:
             raise ValueError(
-                f"SGBMParams: search range {num} px x downscale {self.downscale} is too large "
+                f"SGBMParams: search range {num} px x downscale {downscale} is too large "
                 "(disparities must stay below 4096 px)"
             )
-        return replace(self, num_disparities=num, block_size=block)
+        return replace(self, num_disparities=num, block_size=block, downscale=downscale)
 
 
 # --------------------------------------------------------------------------------------------

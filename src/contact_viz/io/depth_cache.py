@@ -20,7 +20,8 @@ import numpy as np
 from contact_viz import __version__
 from contact_viz.io.atomic import atomic_write
 
-from contact_viz.geometry.stereo import SUBPIXEL, SGBMParams, masked_sgbm_disparity, sgbm_disparity
+from contact_viz.geometry.stereo import SUBPIXEL, SGBMParams, sgbm_disparity
+from contact_viz.geometry.stereo_region import region_sgbm_disparity
 
 
 class CacheWarning(UserWarning):
@@ -141,8 +142,9 @@ class DisparityCache:
         """Frame ``stem``'s disparity from the cache, else computed from ``load_pair()`` and stored.
 
         With ``mask_path`` and ``load_mask`` (and ``params.tool_mask_aware``), the disparity is
-        matched knowing the tool mask (:func:`masked_sgbm_disparity`) and the cache entry is keyed
-        by the mask file's name, size and mtime and the ``object_id`` selected from it too.
+        matched knowing the tool mask (:func:`region_sgbm_disparity`: fine around the tools, the
+        coarse pass elsewhere) and the cache entry is keyed by the mask file's name, size and mtime
+        and the ``object_id`` selected from it too.
         Returns (disparity (H, W) float32 px, whether it came from the cache).
         """
         use_mask = self.params.tool_mask_aware and mask_path is not None and load_mask is not None
@@ -153,7 +155,7 @@ class DisparityCache:
             return cached, True
         left, right = load_pair()
         if use_mask:
-            disparity = masked_sgbm_disparity(left, right, load_mask(), self.params)
+            disparity = region_sgbm_disparity(left, right, load_mask(), self.params).disparity_px
         else:
             disparity = sgbm_disparity(left, right, self.params)
         self.save(path, disparity)

@@ -65,6 +65,7 @@ from contact_viz.io.session_files import (
     natural_key,
 )
 from contact_viz.geometry.stereo import DEPTH_METHODS, SGBMParams, disparity_to_depth
+from contact_viz.geometry.stereo_region import fine_region
 from contact_viz.io.depth_cache import DisparityCache
 from contact_viz.io.kinematics import KINEMATICS_FILE, TOOL_TIPS_FILE, Kinematics, read_kinematics, read_tool_tips
 
@@ -111,6 +112,9 @@ class Frame:
     depth_m: np.ndarray | None  # (H, W) float32, m, read-only; invalid where not a finite number > 0
     left_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB
     right_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB; None also when the frame has no right image
+    # (H, W) bool: where depth_m is SGBM's fine match (the tools and their surroundings); elsewhere it is the
+    # coarse pass's. None: all of depth_m is of one kind (a depth or disparity file, or SGBM without a mask)
+    depth_fine: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -306,6 +310,9 @@ class Session:
             lambda: (self._image("left", stem, decoded), self._image("right", stem, decoded)),
             mask_path=mask_path, load_mask=lambda: self._mask(stem, decoded), object_id=self.object_id,
         )
+        params = self._sgbm.params
+        if mask_path is not None and params.tool_mask_aware and params.region:
+            decoded["depth_fine"] = fine_region(self._mask(stem, decoded), params.region_px)
         return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
             "cached" if cached else "computed"
         )
@@ -414,6 +421,7 @@ class Session:
             depth_m=depth_m,
             left_rgb=left_rgb,
             right_rgb=right_rgb,
+            depth_fine=decoded.get("depth_fine"),
         )
 
     def iter_frames(

@@ -19,7 +19,7 @@ import numpy as np
 from contact_viz import __version__
 from contact_viz.checks.frame import FrameMeasures, analysis_step, measure_frame, shrink_grey
 from contact_viz.checks.params import DiagnosticParams
-from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, FrameChecker, PatchNumbers, fired_ranges
+from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, DepthSource, FrameChecker, PatchNumbers, fired_ranges
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
 from contact_viz.errors import SessionError
 from contact_viz.geometry.patch import compute_patch
@@ -135,6 +135,15 @@ class CheckReport:
     messages: dict[str, str] = field(default_factory=dict)  # check code -> first message (with the likely cause)
     # frames with an image that could not be read (their image checks skipped), and the first one's message
     unreadable_images: tuple[list[int], str] | None = None
+    # frame check code -> likely cause -> frames it fired on naming that cause (most frames first); a check can
+    # name another cause than its usual one (depth_holes: "no depth beside the tool: stereo failed here")
+    causes: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def likely_causes(self, code: str) -> list[str]:
+        """The likely causes check ``code`` named in this session, most frames first (its usual one if it
+        named none)."""
+        named = list(self.causes.get(code, {}))
+        return named or [(CHECKS.get(code) or SESSION_CHECKS[code])[1]]
 
     @property
     def flagged_frames(self) -> int:
@@ -157,7 +166,8 @@ class CheckReport:
             "flagged_frames": self.flagged_frames,
             "checks": {code: {"frames": self.counts.get(code, 0), "ranges": [list(r) for r in self.fired.get(code, [])],
                               "measures": (CHECKS.get(code) or SESSION_CHECKS[code])[0],
-                              "likely_cause": (CHECKS.get(code) or SESSION_CHECKS[code])[1],
+                              "likely_cause": self.likely_causes(code)[0],
+                              **({"causes": self.causes[code]} if len(self.causes.get(code, {})) > 1 else {}),
                               **({"first_message": self.messages[code]} if code in self.messages else {})}
                        for code in (*CHECKS, *SESSION_CHECKS)},
             "force_lag": lag,
@@ -191,7 +201,7 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         records = task(0, n)
     else:
         records = run_chunks(task, n, chunk_size=CHUNK_FRAMES, processes=processes)
-    frames = fired_frames(records, params, session.image_size[1])
+    frames, causes = fired_frames(records, params, session.image_size[1], session.depth_source)
     signal = np.array([r.signal for r in records], dtype=np.float64)
     suspect = np.zeros(n, bool)
     for idx, _ in frames.values():
@@ -211,6 +221,7 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         force_lag=lag, params=params, elapsed_s=time.perf_counter() - started,
         messages={code: msg for code, (_, msg) in frames.items()},
         unreadable_images=_unreadable_images(records),
+        causes=causes,
     )
 
 
@@ -220,10 +231,14 @@ def _unreadable_images(records: list[FrameRecord]) -> tuple[list[int], str] | No
     return None if not bad else ([r.index for r in bad], f"frame {bad[0].index}: {bad[0].image_problem}")
 
 
-def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_width: int) -> dict:
-    """Run the frame checks over ``records`` in order: code -> (frame indices, first message)."""
-    checker = FrameChecker(params, image_width)
+def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_width: int,
+                 depth_source: DepthSource = "depth") -> tuple[dict, dict[str, dict[str, int]]]:
+    """Run the frame checks over ``records`` in order: (code -> (frame indices, first message),
+    code -> likely cause -> frames, most frames first). ``depth_source``: the session's
+    (``Session.depth_source``), for the wording of the causes."""
+    checker = FrameChecker(params, image_width, depth_source)
     out: dict[str, tuple[list[int], str]] = {}
+    causes: dict[str, dict[str, int]] = {}
     for record in records:
         if record.measures is None:
             out.setdefault("bad_frame", ([], f"frame {record.index}: {record.bad_reason}"))[0].append(record.index)
@@ -233,7 +248,9 @@ def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_wid
         for diagnostic in fired:
             out.setdefault(diagnostic.code, ([], f"frame {diagnostic.index}: {diagnostic.message}"))[0].append(
                 diagnostic.index)
-    return out
+            named = causes.setdefault(diagnostic.code, {})
+            named[diagnostic.likely_cause] = named.get(diagnostic.likely_cause, 0) + 1
+    return out, {code: dict(sorted(named.items(), key=lambda kv: -kv[1])) for code, named in causes.items()}
 
 
 def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
@@ -258,7 +275,8 @@ def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
             text += f", ... ({len(ranges)} ranges)"
         if code == "force_lag" and report.force_lag is not None:
             text = f"all ({report.force_lag.lag_frames:+d} frames, {report.force_lag.lag_s:+.3f} s)"
-        cause = (CHECKS.get(code) or SESSION_CHECKS[code])[1]
+        named = report.likely_causes(code)
+        cause = named[0] if len(named) == 1 else "; ".join(f"{c} ({report.causes[code][c]} frame(s))" for c in named)
         lines.append(f"  {code:{width}s}  {report.counts[code]:6d}  {text:30s}  {cause}")
     return lines
 

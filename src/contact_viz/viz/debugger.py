@@ -351,7 +351,8 @@ def run_debugger(
     if model is None:
         rerun_log.log_model_hint(rec, indices[0], float(session.timestamps_s[indices[0]]))
     tracker = DiagnosticsTracker(options.diagnostics, fx_px=float(K[0, 0]),
-                                 baseline_m=float(session.calibration.baseline_m), image_width=session.image_size[1])
+                                 baseline_m=float(session.calibration.baseline_m), image_width=session.image_size[1],
+                                 depth_source=session.depth_source)
     pose_of = _pose_samples(session, options)  # (n,) pose row per frame (-1 none), or None without --hand-eye
     stream = None if model is None else StreamingFilter(model.ensemble)
     reader = _ImageReader(session, options, with_right)
@@ -360,6 +361,7 @@ def run_debugger(
     images = prefetched(reader.load, indices, options.prefetch, workers=options.image_workers,
                         thread_name="contact-viz-images")
     videos = _VideoStreams(session, rec, options, with_right) if options.images == "video" else None
+    depth_kind = rerun_log.DepthKindLayer()  # fine / coarse SGBM depth on the depth pane (frames with depth_fine)
     done = bad = 0
     wait_s = image_wait_s = prepare_s = log_s = 0.0
     interrupted = False
@@ -387,6 +389,7 @@ def run_debugger(
                 bad += 1
                 t3 = time.perf_counter()
                 rerun_log.log_bad_frame(rec, frame, posterior=posterior, predicted=predicted, diagnostics=diagnostics)
+                depth_kind.log(rec, None)
             else:
                 problem = no_patch_problem(patch.reason, patch.invalid_depth_fraction)
                 if problem is not None:  # the frame was read, but its input gives nothing to measure
@@ -394,6 +397,7 @@ def run_debugger(
                     warnings.warn(no_patch_message(frame.stem, problem, session.layer_file(layer, frame.stem)),
                                   NoPatchWarning, stacklevel=2)
                 window = patch.window_xyxy
+                kind_ids = rerun_log.depth_kind_ids(frame.depth_fine, step)
                 view = rerun_log.FrameView(
                     left_jpeg=shown.left_jpeg,
                     left_rgb=shown.left_rgb,
@@ -418,6 +422,7 @@ def run_debugger(
                 )
                 t3 = time.perf_counter()
                 rerun_log.log_frame(rec, result, view)
+                depth_kind.log(rec, kind_ids)
                 if videos is not None:
                     videos.feed(frame.index, shown)
             if pose_of is not None:

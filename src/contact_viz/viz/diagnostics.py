@@ -18,7 +18,8 @@ import numpy as np
 
 from contact_viz.checks.frame import FrameEvidence, measure_frame
 from contact_viz.checks.params import DiagnosticParams
-from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, Diagnostic, FrameChecker, PatchNumbers, fired_ranges
+from contact_viz.checks.rules import (CHECKS, SESSION_CHECKS, DepthSource, Diagnostic, FrameChecker, PatchNumbers,
+                                     fired_ranges)
 from contact_viz.checks.session import force_lag, frame_time_problems
 
 __all__ = ["DIAGNOSTIC_CODES", "SESSION_DIAGNOSTIC_CODES", "Diagnostic", "DiagnosticParams", "DiagnosticsTracker",
@@ -44,15 +45,16 @@ class DiagnosticsTracker:
     :class:`contact_viz.pipeline.extract.FrameResult` (``patch`` None = bad frame) and the frame's
     grey images shrunk for the checks (:func:`contact_viz.pipeline.check.load_grey`), or None.
     ``counts`` maps every code to the number of frames it fired on; ``ranges()`` gives (first, last)
-    frame runs; ``frames`` is the number of frames seen.
+    frame runs; ``frames`` is the number of frames seen. ``depth_source``: the session's
+    (``Session.depth_source``), for the wording of a cause (no depth beside the tool: stereo failed).
     """
 
     def __init__(self, params: DiagnosticParams = DiagnosticParams(), *, fx_px: float = math.nan,
-                 baseline_m: float = math.nan, image_width: int = 1920) -> None:
+                 baseline_m: float = math.nan, image_width: int = 1920, depth_source: DepthSource = "depth") -> None:
         self.params = params
         self.fx_px = fx_px
         self.baseline_m = baseline_m
-        self.checker = FrameChecker(params, image_width)
+        self.checker = FrameChecker(params, image_width, depth_source)
         self.counts: dict[str, int] = dict.fromkeys({**DIAGNOSTIC_CODES, **SESSION_DIAGNOSTIC_CODES}, 0)
         self.fired_frames: dict[str, list[int]] = {}
         self.frames = 0

@@ -13,6 +13,8 @@ Entity tree (the README lists it too)::
     world/camera/depth/image       DepthImage (uint16, 1 unit = 1 / depth_units_per_m m)
     world/camera/depth/layers      SegmentationImage of the layer classes on the depth grid
     world/camera/depth/patch       Boxes2D: the patch window on the depth grid
+    world/camera/depth/kind        SegmentationImage on the depth grid: fine (1) or coarse (2) SGBM depth, with its
+                                   own AnnotationContext (static); only where the frames say (Frame.depth_fine)
     world/cloud/near               Points3D: RGB cloud around the patch (every 2nd pixel)
     world/cloud/far                Points3D: RGB cloud elsewhere, every 16th pixel merged into 4 mm voxels
     world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
@@ -51,6 +53,7 @@ __all__ = [
     "ENTITY_DEPTH_IMAGE",
     "ENTITY_DEPTH_LAYERS",
     "ENTITY_DEPTH_PATCH",
+    "ENTITY_DEPTH_KIND",
     "ENTITY_CLOUD_NEAR",
     "ENTITY_CLOUD_FAR",
     "ENTITY_PATCH_TISSUE",
@@ -99,6 +102,7 @@ ENTITY_DEPTH_CAMERA = "world/camera/depth"
 ENTITY_DEPTH_IMAGE = "world/camera/depth/image"
 ENTITY_DEPTH_LAYERS = "world/camera/depth/layers"
 ENTITY_DEPTH_PATCH = "world/camera/depth/patch"
+ENTITY_DEPTH_KIND = "world/camera/depth/kind"  # fine / coarse depth (rerun_log.DepthKindLayer logs and clears it)
 ENTITY_CLOUD_NEAR = "world/cloud/near"
 ENTITY_CLOUD_FAR = "world/cloud/far"
 ENTITY_PATCH_TISSUE = "world/patch/tissue"

@@ -29,7 +29,11 @@ from contact_viz.io.session import BadFrame, Session
 from contact_viz.params import MM_PER_M
 from contact_viz.viz.entities import *  # noqa: F403  (the entity paths, re-exported for scripts)
 from contact_viz.viz.style import (
+    DEPTH_COARSE,
     DEPTH_COLORMAP,
+    DEPTH_FINE,
+    DEPTH_KIND_DRAW_ORDER,
+    DEPTH_KIND_STYLES,
     DIAGNOSTIC_STYLES,
     KINEMATIC_STYLES,
     LAYER_OVERLAY_OPACITY,
@@ -41,6 +45,7 @@ from contact_viz.viz.style import (
 
 __all__ = [
     "APPLICATION_ID",
+    "DepthKindLayer",
     "OpenedRecording",
     "RecordingStream",
     "open_recording",
@@ -49,6 +54,7 @@ __all__ = [
     "ENTITY_CLOUD_NEAR",
     "ENTITY_DEPTH_CAMERA",
     "ENTITY_DEPTH_IMAGE",
+    "ENTITY_DEPTH_KIND",
     "ENTITY_DEPTH_LAYERS",
     "ENTITY_DEPTH_PATCH",
     "ENTITY_LEFT_CAMERA",
@@ -78,6 +84,8 @@ __all__ = [
     "TIMELINE_FRAME",
     "TIMELINE_TIME",
     "default_blueprint",
+    "depth_kind_ids",
+    "depth_kind_legend",
     "diagnostic_entity",
     "diagnostic_score_entity",
     "log_session_diagnostics",
@@ -243,8 +251,14 @@ def layer_legend() -> str:
     return " · ".join(f"{s.colour_name}: {s.name}" for s in LAYER_STYLES if s.rgba[3] > 0)
 
 
+def depth_kind_legend() -> str:
+    """The drawn depth kinds in words ("purple tint: coarse depth"), for the depth view's title (the full
+    names, with what the patch reads, show on hover)."""
+    return " · ".join(f"{s.colour_name}: {s.name.split(' (')[0]}" for s in DEPTH_KIND_STYLES if s.rgba[3] > 0)
+
+
 def default_blueprint(*, with_right: bool = True, with_model: bool = True,
-                      with_kinematics: bool = False) -> rrb.Blueprint:
+                      with_kinematics: bool = False, with_depth_kind: bool = True) -> rrb.Blueprint:
     """The layout sent with every recording: images over the 3D scene on the left, stacked time series on the right.
 
     Left column, top: the left image with the layer overlay and the patch box (large; its title
@@ -252,7 +266,9 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     overlay (each a quarter of the left image's area, so the three images fill their panes with
     little letterboxing). Below: the 3D scene (RGB cloud, patch points, gap arrow, camera frustums;
     the depth image's own back-projection is in the scene but hidden until toggled on), seen from
-    the side (EYE_*). Right column: distance, signal, force, contact (truth / posterior / threshold
+    the side (EYE_*). Where SGBM depth was computed in two parts, the depth image's coarse part is
+    tinted (:class:`DepthKindLayer`; the depth view's title names the tint unless ``with_depth_kind``
+    is False). Right column: distance, signal, force, contact (truth / posterior / threshold
     / prediction) and diagnostics, all on the global ``frame`` axis, the text log in a tab beside
     the diagnostics. Single-series plots have no legend (the view name says what and in which
     unit); the others have theirs in a corner that the approach phase mostly leaves free.
@@ -260,12 +276,16 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
     no_legend = rrb.PlotLegend(visible=False)
     left = rrb.Spatial2DView(name=f"left · {layer_legend()}", origin=ENTITY_LEFT_CAMERA)
-    depth = rrb.Spatial2DView(name=f"depth + layers · {PATCH_COLOUR_NAME} box: patch", origin=ENTITY_DEPTH_CAMERA)
+    depth_name = f"depth + layers · {PATCH_COLOUR_NAME} box: patch"
+    if with_depth_kind:
+        depth_name += f" · {depth_kind_legend()}"
+    # (its contents, everything under the depth camera, take the depth kinds of ENTITY_DEPTH_KIND too)
+    depth = rrb.Spatial2DView(name=depth_name, origin=ENTITY_DEPTH_CAMERA)
     scene = rrb.Spatial3DView(
         name="3D: cloud, patch points, gap",
         origin=ENTITY_WORLD,
         contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}", f"- {ENTITY_LEFT_PATCH}", f"- {ENTITY_DEPTH_LAYERS}",
-                  f"- {ENTITY_DEPTH_PATCH}"],
+                  f"- {ENTITY_DEPTH_PATCH}", f"- {ENTITY_DEPTH_KIND}"],
         # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
         overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
         line_grid=rrb.LineGrid3D(visible=False),
@@ -477,6 +497,46 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
     _log_diagnostics(rec, view.diagnostics, view.notes, view.diagnostic_scores)
     _log_evidence(rec, view.evidence if any(d.code in EVIDENCE_CHECKS for d in view.diagnostics) else None,
                   frame.tool_mask.shape)
+
+
+def depth_kind_ids(depth_fine: np.ndarray | None, step: int) -> np.ndarray | None:
+    """The depth-kind classes on the decimated depth grid: (h, w) uint8, DEPTH_FINE where ``depth_fine``
+    ((H, W) bool, :attr:`contact_viz.io.session.Frame.depth_fine`) is True, DEPTH_COARSE elsewhere; the
+    same ``[::step, ::step]`` pixels as the depth image, so it lies on it. None when ``depth_fine`` is None."""
+    if depth_fine is None:
+        return None
+    fine = np.asarray(depth_fine, dtype=bool)[::step, ::step]
+    return np.where(fine, np.uint8(DEPTH_FINE), np.uint8(DEPTH_COARSE))
+
+
+class DepthKindLayer:
+    """The fine / coarse depth layer of the depth pane (ENTITY_DEPTH_KIND), frame by frame.
+
+    Its classes (an AnnotationContext on the entity itself, which Rerun finds before the layer classes
+    on ``world``: the ids overlap) are logged statically with the first frame that has the layer; a frame
+    without it (a depth file, SGBM without a mask, a bad frame) logs nothing, and clears the entity if the
+    previous frame showed it, so a stale layer never shows. A session without the layer never has the entity.
+    """
+
+    def __init__(self) -> None:
+        self.classes_logged = False
+        self.shown = False  # the entity holds a layer at the current time
+
+    def log(self, rec: rr.RecordingStream, ids: np.ndarray | None) -> None:
+        """Log ``ids`` (from :func:`depth_kind_ids`, or None) at the recording's current time."""
+        if ids is None:
+            if self.shown:
+                rec.log(ENTITY_DEPTH_KIND, rr.Clear(recursive=False))
+                self.shown = False
+            return
+        if not self.classes_logged:
+            rec.log(ENTITY_DEPTH_KIND, rr.AnnotationContext(
+                [rr.AnnotationInfo(id=s.class_id, label=s.name, color=s.rgba) for s in DEPTH_KIND_STYLES]),
+                static=True)
+            self.classes_logged = True
+        rec.log(ENTITY_DEPTH_KIND, rr.SegmentationImage(ids, opacity=LAYER_OVERLAY_OPACITY,
+                                                        draw_order=DEPTH_KIND_DRAW_ORDER))
+        self.shown = True
 
 
 def _log_evidence(rec: rr.RecordingStream, evidence: FrameEvidence | None, shape: tuple[int, int]) -> None:

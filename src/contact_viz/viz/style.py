@@ -18,7 +18,11 @@ from dataclasses import dataclass
 from contact_viz.geometry.patch import LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE
 
 __all__ = [
+    "DEPTH_COARSE",
     "DEPTH_COLORMAP",
+    "DEPTH_FINE",
+    "DEPTH_KIND_DRAW_ORDER",
+    "DEPTH_KIND_STYLES",
     "DIAGNOSTIC_STYLES",
     "LAYER_OVERLAY_OPACITY",
     "LAYER_STYLES",
@@ -76,6 +80,20 @@ LAYER_STYLES: tuple[LayerStyle, ...] = (
     LayerStyle(LAYER_TOOL_EDGE, "tool edge (excluded)", with_alpha(SKY_BLUE, THIN_LAYER_ALPHA), "sky blue"),
     LayerStyle(LAYER_RING, "excluded ring", with_alpha(YELLOW, THIN_LAYER_ALPHA), "yellow"),
     LayerStyle(LAYER_BAND, "exterior band", with_alpha(BLUISH_GREEN, THIN_LAYER_ALPHA), "green"),
+)
+
+
+# Which kind of depth each pixel of the depth pane is (SGBM depth with masks: contact_viz.io.session.Frame.depth_fine).
+# The fine match is left as it is; the coarse pass's (reduced resolution, read by nothing the patch measures) is
+# tinted, lightly enough that the depth under it still reads.
+DEPTH_FINE = 1  # class id: the fine stereo match (the tools and the background around them)
+DEPTH_COARSE = 2  # class id: the coarse full-frame pass, at reduced resolution
+COARSE_DEPTH_ALPHA = 90  # overlay alpha of the coarse depth's tint, 0-255
+DEPTH_KIND_DRAW_ORDER = -10.0  # over the depth image (Rerun's default -20), under the layer overlay (0) and box (10)
+DEPTH_KIND_STYLES: tuple[LayerStyle, ...] = (
+    LayerStyle(DEPTH_FINE, "fine stereo depth (what the patch reads)", TRANSPARENT),
+    LayerStyle(DEPTH_COARSE, "coarse depth (reduced resolution, not read by the patch)",
+               with_alpha(REDDISH_PURPLE, COARSE_DEPTH_ALPHA), "purple tint"),
 )
 
 

@@ -1,0 +1,148 @@
+"""SGBM depth only where the patch reads it (contact_viz.geometry.stereo_region): the region, the tiles'
+search ranges, the coarse pass, and the depth at 1280x720 and 1920x1080 against the exact depth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from contact_viz.geometry.patch import compute_patch
+from contact_viz.geometry.stereo import SGBMParams, disparity_to_depth
+from contact_viz.geometry.stereo_region import _search_range, _tiles, coarse_disparity, fine_region, region_sgbm_disparity
+from contact_viz.params import PatchParams
+
+
+def test_fine_region_against_brute_force():
+    rng = np.random.default_rng(4)
+    tool = np.zeros((40, 60), bool)
+    tool[rng.integers(0, 40, 6), rng.integers(0, 60, 6)] = True
+    tool[10:14, 20:35] = True
+    ys, xs = np.nonzero(tool)
+    yy, xx = np.mgrid[0:40, 0:60]
+    nearest = np.min((yy[..., None] - ys) ** 2 + (xx[..., None] - xs) ** 2, axis=-1)
+    for radius in (0, 1, 3, 7):
+        assert np.array_equal(fine_region(tool, radius), nearest <= radius * radius)
+    assert not fine_region(np.zeros((5, 5), bool), 3).any()
+
+
+def test_search_range_worked_example():
+    p = SGBMParams(range_margin_px=4).resolve(640)  # 80 disparities from 0
+    # 40.2 .. 47.9 -> floor 40 - 4 = 36 .. ceil 48 + 4 = 52: 17 disparities, rounded up to 32.
+    assert _search_range(np.array([47.9, np.nan, 40.2, 44.0]), p) == (36, 32)
+    assert _search_range(np.array([np.nan]), p) == (0, 80)  # nothing known: the whole range
+    assert _search_range(np.array([1.0, 78.5]), p) == (0, 80)  # clipped to the whole range
+
+
+def test_tiles_cover_the_region_row_by_row():
+    region = np.zeros((100, 80), bool)
+    for y in range(10, 90):  # a diagonal band
+        region[y, y // 2:y // 2 + 12] = True
+    tiles = _tiles(region, 16)
+    assert [t[:2] for t in tiles] == [(y, min(y + 16, 100)) for y in range(10, 90, 16)]
+    covered = np.zeros_like(region)
+    for y0, y1, x0, x1 in tiles:
+        rows = region[y0:y1]
+        cols = np.flatnonzero(rows.any(axis=0))
+        assert (x0, x1) == (cols[0], cols[-1] + 1)
+        covered[y0:y1, x0:x1] = True
+    assert not (region & ~covered).any()
+
+
+D_BG, D_BOX = 20, 52  # disparities of the plane and the box at full resolution, px
+
+
+def box_pair(height=360, width=1280, seed=0):
+    """A textured plane (disparity D_BG) and a textured box in front of it (D_BOX); texture in 2x2 px cells so
+    that it survives matching at half size. Returns (left, right, box mask)."""
+    rng = np.random.default_rng(seed)
+    pad = D_BOX + 2
+    cells = lambda lo: np.repeat(np.repeat(rng.integers(lo, 256, (height // 2 + 1, (width + 2 * pad) // 2 + 1, 3),
+                                                        dtype=np.uint8), 2, 0), 2, 1)[:height, :width + 2 * pad]
+    plane, box_tex = cells(0), cells(150)
+    y0, y1, x0, x1 = 100, 260, 500, 700
+    left = plane[:, pad:pad + width].copy()
+    right = plane[:, pad + D_BG:pad + D_BG + width].copy()
+    left[y0:y1, x0:x1] = box_tex[y0:y1, pad + x0:pad + x1]
+    right[y0:y1, x0 - D_BOX:x1 - D_BOX] = box_tex[y0:y1, pad + x0:pad + x1]
+    tool = np.zeros((height, width), bool)
+    tool[y0:y1, x0:x1] = True
+    return left, right, tool
+
+
+def test_region_disparity_on_a_box_at_half_size():
+    left, right, tool = box_pair()
+    params = SGBMParams(region_px=24)
+    assert params.resolve(1280).downscale == 2
+    result = region_sgbm_disparity(left, right, tool, params)
+    disparity, fine = result.disparity_px, result.fine
+    assert np.array_equal(fine, fine_region(tool, 24))
+    # On the box: its own disparity; beside it, right of it and above/below, the plane's, not the box's.
+    inner = np.zeros_like(tool)
+    inner[110:250, 510:690] = True
+    assert np.isfinite(disparity[inner]).mean() > 0.9
+    assert np.nanmedian(np.abs(disparity[inner] - D_BOX)) <= 0.5
+    beside = fine & ~tool
+    beside[:, :500] = False  # left of the box the plane is hidden behind it in the right view (32 px)
+    valid = beside & np.isfinite(disparity)
+    assert valid.sum() > 0.6 * beside.sum()
+    assert np.mean(np.abs(disparity[valid] - D_BG) <= 1.0) > 0.98
+    # Outside the region: the coarse pass (the plane, 1/16 px steps of the coarse scale).
+    outside = ~fine & np.isfinite(disparity)
+    assert outside.sum() > 0.8 * (~fine).sum()
+    assert np.mean(np.abs(disparity[outside] - D_BG) <= 2.0) > 0.95
+
+
+def test_coarse_pass_scales_the_search_range():
+    left, right, _ = box_pair()
+    small_params = SGBMParams().resolve(1280)  # matching at 640 px, 80 disparities
+    disparity, n = coarse_disparity(left[::2, ::2].copy(), right[::2, ::2].copy(), small_params)
+    assert n == 2  # 640 px matched at <= 480 px: halved
+    assert disparity.shape == (90, 320)
+    plane = np.isfinite(disparity[:, :200])
+    assert np.median(np.abs(disparity[:, :200][plane] - D_BG / 2)) <= 1.0  # in the pixels of the 640 px pair
+
+
+@pytest.fixture(scope="module", params=[(1280, 720), (1920, 1080)], ids=["720p", "1080p"])
+def synth_frame(request, tmp_path_factory):
+    """One frame of a seeded synthetic session at 720p or 1080p (tool hovering over the cup) and its exact depth."""
+    from contact_viz.io.decoders import read_rgb
+    from contact_viz.io.session import open_session
+    from contact_viz.synth import SynthParams, generate_session, true_depth
+
+    width, height = request.param
+    params = SynthParams(phantom="cup", frames=1, seed=3, width=width, height=height)
+    root = generate_session(tmp_path_factory.mktemp("synth") / "s", params)
+    session = open_session(root)
+    tool = session.load_frame(0, ("mask",)).tool_mask != 0
+    truth = true_depth(params, [0])[0]
+    left, right = read_rgb(next((root / "left").iterdir())), read_rgb(next((root / "right").iterdir()))
+    return left, right, tool, np.where(truth > 0, truth, np.nan).astype(np.float32), session.calibration
+
+
+def test_band_depth_at_the_papers_resolution(synth_frame):
+    """The exterior band against the exact depth at 720p and 1080p: matched at full size (the default
+    before the matching width), most of the band went unmatched at 1080p; now it is measured as at
+    640x360, and the patch reads no coarse pixel."""
+    left, right, tool, truth, calibration = synth_frame
+    band = compute_patch(truth, tool).band
+
+    def depth_of(params):
+        result = region_sgbm_disparity(left, right, tool, params)
+        return disparity_to_depth(result.disparity_px, calibration.fx, calibration.baseline_m), result.fine
+
+    # Measured (band valid / both cameras see it / valid within 3 mm): 640x360 0.53 / 0.57 / 0.994;
+    # 1280x720 0.46 / 0.54 / 0.980 (full size: 0.25 valid); 1920x1080 0.35 / 0.53 / 0.995 (full size: 0.18).
+    depth, fine = depth_of(SGBMParams())
+    valid = band & np.isfinite(depth) & np.isfinite(truth)
+    assert valid.sum() > 0.3 * band.sum()
+    assert np.mean(np.abs((depth - truth)[valid]) < 0.003) >= 0.95
+    # Everything the patch reads lies in the fine region: the same result with the coarse pixels blanked.
+    blanked = np.where(fine, depth, np.nan).astype(np.float32)
+    full, only_fine = compute_patch(depth, tool), compute_patch(blanked, tool)
+    assert np.array_equal(full.band_distance_m, only_fine.band_distance_m, equal_nan=True)
+    assert full.distance_m == only_fine.distance_m or (np.isnan(full.distance_m) and np.isnan(only_fine.distance_m))
+    reach = PatchParams().outer_reach_px + PatchParams().bleed_beyond_px
+    assert SGBMParams().region_px >= reach
+    if left.shape[1] == 1920:  # matched at full size, the band was mostly unmatched (validity collapsed)
+        full_size, _ = depth_of(SGBMParams(downscale=1, region=False))
+        assert (band & np.isfinite(full_size)).sum() < 0.6 * valid.sum()
