@@ -430,6 +430,8 @@ def main(argv=None) -> int:
     parser.add_argument("--summarize", type=Path, nargs="+", metavar="DIR",
                         help="instead: one line per study directory already run (its results.json): the exact "
                         "gap's, the rendered depth's and the default SGBM's held-out macro F1, and the band accuracy")
+    parser.add_argument("--variant", metavar="JSON", default=None,
+                        help='one more SGBM row: the default with these SGBMParams fields, e.g. \'{"match_width_px": 640}\'')
     parser.add_argument("--band-sweep", action="store_true",
                         help="instead: compare SGBM settings beside the tool on the training sessions (how the "
                         "defaults were chosen), on every 15th frame from frame 7")
@@ -440,6 +442,9 @@ def main(argv=None) -> int:
     if args.only_default:
         SOURCES = {k: v for k, v in SOURCES.items() if k in ("rendered", "SGBM, mask-aware")}
         METHODS = {k: v for k, v in METHODS.items() if v[0] in SOURCES and (k == "rendered depth" or "default" in k)}
+    if args.variant:
+        SOURCES[f"SGBM {args.variant}"] = SGBMParams(**json.loads(args.variant))
+        METHODS[f"SGBM {args.variant} + bleeding test"] = (f"SGBM {args.variant}", PatchParams())
     if args.summarize:
         summarize(args.summarize)
         return 0

@@ -160,11 +160,13 @@ def region_sgbm_disparity(
     for y0, y1, x0, x1 in _tiles(small_region, p.tile_rows_px):
         lo, num = _search_range(coarse_small[y0:y1, x0:x1][small_region[y0:y1, x0:x1]], p1)
         cy0, cy1 = max(y0 - _CONTEXT_ROWS, 0), min(y1 + _CONTEXT_ROWS, height)
-        cx0 = max(x0 - lo - num - p.block_size, 0)
+        # columns: the right view's match of the tile's first column lies up to lo + num left of it, and the
+        # left-right check matches the right view's last matched column up to num right of the tile
+        cx0, cx1 = max(x0 - lo - num - p.block_size, 0), min(x1 + num + p.block_size, width)
         tile = replace(p1, min_disparity=lo, num_disparities=num)
-        got = masked_sgbm_disparity(small_l[cy0:cy1, cx0:x1], small_r[cy0:cy1, cx0:x1],
-                                    small_tool[cy0:cy1, cx0:x1], tile)
-        fine_small[y0:y1, x0:x1] = got[y0 - cy0:y1 - cy0, x0 - cx0:]
+        got = masked_sgbm_disparity(small_l[cy0:cy1, cx0:cx1], small_r[cy0:cy1, cx0:cx1],
+                                    small_tool[cy0:cy1, cx0:cx1], tile)
+        fine_small[y0:y1, x0:x1] = got[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
     fine = _split_at_edge(_grow(fine_small, shape, n), tool, small_tool, n)
     out = _grow(coarse, shape, n)
     out[region] = fine[region]
