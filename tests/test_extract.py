@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contact_viz.pipeline.extract import (FEATURE_COLUMNS, REASON_BAD_FRAME, BadFrameWarning, extract_features,
+from contact_viz.pipeline.extract import (FEATURE_COLUMNS, REASON_BAD_FRAME, TOOL_COLUMN, BadFrameWarning, extract_features,
                                  iter_frame_results, write_features)
 from contact_viz.params import PatchParams, to_dict
 from contact_viz.geometry.patch import compute_patch
@@ -77,7 +77,7 @@ def test_rows_agree_with_compute_patch(cup_session):
     for row, frame in zip(rows, session.iter_frames(layers=("mask", "depth"), indices=[0, 10, 20])):
         direct = compute_patch(frame.depth_m, frame.tool_mask, params)
         assert row["frame"] == frame.stem
-        assert set(row) == set(FEATURE_COLUMNS)
+        assert set(row) == {*FEATURE_COLUMNS, TOOL_COLUMN}
         if direct.found:
             assert float(row["distance_m"]) == direct.distance_m
             assert (int(row["patch_x"]), int(row["patch_y"])) == direct.center_xy
@@ -210,7 +210,7 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
     unreadable files included)."""
     import cv2
 
-    from contact_viz.pipeline.extract import FeatureRows, feature_row
+    from contact_viz.pipeline.extract import FeatureRows, result_rows
 
     root, height, width = tmp_path / "s", 97, 131
     rng = np.random.default_rng(7)
@@ -245,7 +245,7 @@ def test_rows_from_depth_rows_equal_rows_from_whole_frames(tmp_path):
     for params in (PatchParams(), small):
         task = FeatureRows(session, params, tuple(range(len(session))))
         with pytest.warns(BadFrameWarning):
-            whole = [feature_row(session, r) for r in iter_frame_results(session, params)]
+            whole = [row for r in iter_frame_results(session, params) for row in result_rows(session, r)]
         assert task(0, len(session)) == whole
         assert [r["reason"] for r in whole][:3] == ["empty_mask", whole[1]["reason"], whole[2]["reason"]]
         assert whole[6]["reason"] == whole[9]["reason"] == REASON_BAD_FRAME

@@ -95,7 +95,7 @@ def test_read_tool_mask_uses_it(tmp_path):
     for bits, name in ((8, "eight.png"), (4, "four.png")):
         (tmp_path / name).write_bytes(palette_png(ids, DAVIS[:48] if bits == 4 else DAVIS, bits=bits))
         np.testing.assert_array_equal(read_tool_mask(tmp_path / name), ids != 0)
-        np.testing.assert_array_equal(read_tool_mask(tmp_path / name, object_id=5), ids == 5)
+        np.testing.assert_array_equal(read_tool_mask(tmp_path / name, object_ids=(5,)), ids == 5)
 
 
 @pytest.mark.parametrize("cut", [0.3, 0.9])

@@ -146,12 +146,12 @@ def test_frames_decoded(tmp_path):
 
 def test_object_id_selects_one_palette_index(tmp_path):
     make_session(tmp_path / "s")
-    s = open_session(tmp_path / "s", object_id=2)
+    s = open_session(tmp_path / "s", object_ids=(2,))
     frame = next(s.iter_frames(layers=("mask",)))
     np.testing.assert_array_equal(frame.tool_mask, id_map() == 2)
     assert frame.tool_mask.sum() == 9 * 11
-    with pytest.raises(ValueError, match="object_id"):
-        open_session(tmp_path / "s", object_id=0)
+    with pytest.raises(ValueError, match="object_ids"):
+        open_session(tmp_path / "s", object_ids=(0,))
 
 
 def test_mask_formats(tmp_path):
@@ -168,10 +168,10 @@ def test_mask_formats(tmp_path):
     Image.fromarray(colours).save(rgb)
     np.testing.assert_array_equal(read_tool_mask(rgb), ids != 0)
     with pytest.raises(SessionError, match="rgb.png.*object-id"):
-        read_tool_mask(rgb, object_id=1)
+        read_tool_mask(rgb, object_ids=(1,))
     pal = tmp_path / "pal.png"
     write_palette_png(pal, ids)
-    np.testing.assert_array_equal(read_tool_mask(pal, object_id=1), ids == 1)
+    np.testing.assert_array_equal(read_tool_mask(pal, object_ids=(1,)), ids == 1)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, ">f4"])

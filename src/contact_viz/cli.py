@@ -68,7 +68,7 @@ def extract(
     session_dir: Annotated[Path, typer.Argument(help="Session directory (see README: session format).")],
     output: Annotated[Optional[Path], typer.Option("-o", "--output", help="features CSV to write "
                       "[default: results/<session name>/features.csv]")] = None,
-    object_id: ObjectId = None,
+    object_ids: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
     cache_dir: CacheDir = None,
@@ -92,7 +92,7 @@ def extract(
 
         params, label_params = _resolve_params(params_file, contact_force)
         try:
-            session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+            session = open_session(session_dir, object_ids=object_ids, label_params=label_params, cache_dir=cache_dir)
         except SessionError as exc:
             _fail(str(exc))
         typer.echo(session.depth_note, err=True)
@@ -148,7 +148,7 @@ def fit(
     output: Annotated[Path, typer.Option("-o", "--output", help="model.json to write.")] = Path("model.json"),
     params_file: ParamsFile = None,
     contact_force: ContactForce = 2.0,
-    object_id: ObjectId = None,
+    object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
 ) -> None:
     """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions."""
@@ -160,7 +160,7 @@ def fit(
     if len(train_sessions) < 2:
         _fail(f"fit needs at least 2 training sessions for leave-one-session-out, got {len(train_sessions)}")
     check_output_file(output, "-o/--output", example="model.json")
-    features = _load_features(train_sessions, params, label_params, object_id, cache_dir)
+    features = _load_features(train_sessions, params, label_params, object_ids, cache_dir)
     problem = session_training_problem([f.name for f in features], [f.labels for f in features],
                                        [f.signal for f in features])
     if problem:
@@ -192,7 +192,7 @@ def evaluate(
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Metrics as JSON.")] = None,
     markdown: Annotated[bool, typer.Option(help="Also print the table as Markdown.")] = False,
     latex: Annotated[bool, typer.Option(help="Also print the table as LaTeX (booktabs).")] = False,
-    object_id: ObjectId = None,
+    object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
 ) -> None:
     """Score held-out sessions: the Table-1 metrics per session and their macro mean."""
@@ -203,7 +203,7 @@ def evaluate(
     for path, option in ((per_frame, "--per-frame"), (json_out, "--json")):
         if path is not None:
             check_output_file(path, option, example="metrics.json" if option == "--json" else "per_frame.csv")
-    model, features = _model_and_features(model_path, test_sessions, object_id, cache_dir)
+    model, features = _model_and_features(model_path, test_sessions, object_ids, cache_dir)
     try:
         scores = [score_session(model.predict_proba, model.threshold, f.name, f.frames, f.signal, f.labels)
                   for f in features]
@@ -225,7 +225,7 @@ def predict(
     model_path: Annotated[Path, typer.Argument(metavar="MODEL", help="model.json from `contact-viz fit`.")],
     session_dir: Annotated[Path, typer.Argument(help="Session directory (labels not needed).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="CSV to write.")] = Path("predictions.csv"),
-    object_id: ObjectId = None,
+    object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
 ) -> None:
     """Contact posteriors for a session, with or without labels."""
@@ -234,7 +234,7 @@ def predict(
     from contact_viz.paper.tables import write_per_frame
 
     check_output_file(output, "-o/--output", example="predictions.csv")
-    model, (features,) = _model_and_features(model_path, [session_dir], object_id, cache_dir)
+    model, (features,) = _model_and_features(model_path, [session_dir], object_ids, cache_dir)
     scores = score_session(model.predict_proba, model.threshold, features.name, features.frames,
                            features.signal, features.labels)
     write_per_frame(output, PER_FRAME_COLUMNS, per_frame_rows([scores]))
@@ -280,7 +280,7 @@ def view(
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
     hand_eye: Annotated[Optional[Path], typer.Option(help="4x4 camera_T_base (text or .npy, m): draw the "
                         "kinematics.csv tool tip and its distance to the mask's tip.")] = None,
-    object_id: ObjectId = None,
+    object_ids: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
     cache_dir: CacheDir = None,
@@ -312,7 +312,7 @@ def view(
                       f"({'; '.join(diff)}); drop --params (view then uses the model's) or fit a model with "
                       "these parameters")
             params = model.patch_params
-        session = open_session(session_dir, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+        session = open_session(session_dir, object_ids=object_ids, label_params=label_params, cache_dir=cache_dir)
         if hand_eye is not None:
             from contact_viz.io.kinematics import read_hand_eye
 
@@ -548,7 +548,7 @@ def batch(
     chunk_frames: Annotated[int, typer.Option(min=1, help="Frames per depth/extract task.")] = 256,
     model_path: Annotated[Optional[Path], typer.Option("--model", help="model.json for view and evaluate "
                           "(evaluate without fit needs it).")] = None,
-    object_id: ObjectId = None,
+    object_ids: ObjectId = None,
     contact_force: ContactForce = 2.0,
     params_file: ParamsFile = None,
     cache_dir: CacheDir = None,
@@ -563,7 +563,7 @@ def batch(
     check_output_dir(output, "-o/--output")
     try:
         options = BatchOptions(steps=tuple(s.strip() for s in steps.split(",") if s.strip()), params=params,
-                               label_params=label_params, object_id=object_id,
+                               label_params=label_params, object_ids=object_ids,
                                cache_dir=None if cache_dir is None else str(cache_dir),
                                chunk_frames=chunk_frames,
                                model_path=None if model_path is None else str(model_path.resolve()))

@@ -75,7 +75,10 @@ def _inside(path: Path, directory: Path) -> bool:
         return False
 
 
-ObjectId = Annotated[Optional[int], typer.Option(help="Use only this object id of palettized masks.")]
+ObjectId = Annotated[Optional[list[int]], typer.Option(
+    "--object-id", min=1, metavar="ID", callback=lambda ids: tuple(sorted(set(ids))) or None if ids else None,
+    help="Run on this instrument (object id of palettized masks) only; repeat for several. The other "
+    "instruments stay excluded from the tissue. Default: every instrument.")]
 ContactForce = Annotated[float, typer.Option(help="Contact label threshold on the force magnitude, N.")]
 ParamsFile = Annotated[Optional[Path], typer.Option("--params", help="JSON of PatchParams fields "
                        "(e.g. from recipes/grid_search.py).")]
@@ -98,7 +101,7 @@ def _resolve_params(params_file: Optional[Path], contact_force: float):
         _fail(str(exc))
 
 
-def _load_features(sources: list[Path], params, label_params, object_id, cache_dir) -> list:
+def _load_features(sources: list[Path], params, label_params, object_ids, cache_dir) -> list:
     """Features for fit / evaluate / predict (contact_viz.pipeline.features.load_features), with a
     progress bar per session and a count of its skipped frames; exits with one line on a bad source."""
     from contact_viz.console import FrameReport
@@ -130,7 +133,7 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
                         fg=typer.colors.YELLOW, err=True)
 
     try:
-        return load_features(sources, params, label_params, object_id=object_id, cache_dir=cache_dir,
+        return load_features(sources, params, label_params, object_ids=object_ids, cache_dir=cache_dir,
                              processes=DEFAULT_PROCESSES, on_open=opened, on_done=finished)
     except (SessionError, ValueError, KeyError) as exc:
         _fail(str(exc))
@@ -139,14 +142,14 @@ def _load_features(sources: list[Path], params, label_params, object_id, cache_d
             bar.stop()
 
 
-def _model_and_features(model_path: Path, sources: list[Path], object_id, cache_dir):
+def _model_and_features(model_path: Path, sources: list[Path], object_ids, cache_dir):
     from contact_viz.model.model_file import load_model
 
     try:
         model = load_model(model_path)
     except ValueError as exc:
         _fail(str(exc))
-    features = _load_features(sources, model.patch_params, model.label_params, object_id, cache_dir)
+    features = _load_features(sources, model.patch_params, model.label_params, object_ids, cache_dir)
     return model, features
 
 

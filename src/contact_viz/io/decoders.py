@@ -9,7 +9,7 @@ import contextlib
 import io
 import os
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import cv2
@@ -122,27 +122,40 @@ def _mask_ids(data: np.ndarray) -> np.ndarray | None:
     return ids
 
 
-def read_tool_mask(path: Path, object_id: int | None = None) -> np.ndarray:
-    """Decode a tool mask PNG to (H, W) bool, True = tool.
+BINARY_MASK_VALUE = 255  # a single-channel mask whose only nonzero value is this is binary: one instrument, id 1
 
-    Palettized (SAM2/DAVIS) and single-channel masks: pixel value = object id, 0 = background;
-    tool = nonzero, or == ``object_id`` when given. Multi-channel masks: tool = any colour channel
-    nonzero (``object_id`` is then an error). Palettized PNGs are decoded to their palette
+
+def read_mask_ids(path: Path, object_ids: Sequence[int] | None = None) -> np.ndarray:
+    """Decode a tool mask PNG to (H, W) uint16 object ids, 0 = background: one id per instrument.
+
+    Palettized (SAM2/DAVIS) and single-channel masks: pixel value = object id; a single-channel
+    mask whose only nonzero value is 255 (8-bit 0/255) is binary, one instrument with id 1.
+    Multi-channel masks: one instrument, id 1 where any colour channel is nonzero (``object_ids``
+    is then an error: there are no ids to select). Palettized PNGs are decoded to their palette
     indices (contact_viz.io.palette_png; PIL for bit depths other than 8), the rest by OpenCV.
     """
     what = "a tool mask PNG (palettized object ids, or 8-bit 0/255)"
     ids = _decode(path, what, _mask_ids)
     if ids.ndim == 2:
-        return ids == object_id if object_id is not None else ids != 0
+        out = ids.astype(np.uint16)
+        if out.max(initial=0) == BINARY_MASK_VALUE and not np.any((out != 0) & (out != BINARY_MASK_VALUE)):
+            out = (out != 0).astype(np.uint16)
+        return out
     if ids.ndim == 3 and ids.shape[2] in (3, 4):
-        if object_id is not None:
+        if object_ids:
             raise SessionFormatError(
                 path,
-                f"expected a palettized or single-channel mask to select --object-id {object_id}, "
+                f"expected a palettized or single-channel mask to select --object-id {object_ids[0]}, "
                 f"found {ids.shape[2]} channels",
             )
-        return np.any(ids[:, :, :3] != 0, axis=2)
+        return np.any(ids[:, :, :3] != 0, axis=2).astype(np.uint16)
     raise SessionFormatError(path, f"expected {what}, found an array of shape {ids.shape}")
+
+
+def read_tool_mask(path: Path, object_ids: Sequence[int] | None = None) -> np.ndarray:
+    """Decode a tool mask PNG to (H, W) bool, True = tool: every instrument, or those of ``object_ids``."""
+    ids = read_mask_ids(path, object_ids)
+    return np.isin(ids, object_ids) if object_ids else ids != 0
 
 
 def _invalid_to_nan(depth_m: np.ndarray) -> np.ndarray:

@@ -137,18 +137,17 @@ class DisparityCache:
         load_pair: Callable[[], tuple[np.ndarray, np.ndarray]],
         mask_path: Path | None = None,
         load_mask: Callable[[], np.ndarray] | None = None,
-        object_id: int | None = None,
     ) -> tuple[np.ndarray, bool]:
         """Frame ``stem``'s disparity from the cache, else computed from ``load_pair()`` and stored.
 
         With ``mask_path`` and ``load_mask`` (and ``params.tool_mask_aware``), the disparity is
         matched knowing the tool mask (:func:`region_sgbm_disparity`: fine around the tools, the
-        coarse pass elsewhere) and the cache entry is keyed by the mask file's name, size and mtime
-        and the ``object_id`` selected from it too.
+        coarse pass elsewhere; ``load_mask`` gives every instrument of the frame) and the cache entry is
+        keyed by the mask file's name, size and mtime too.
         Returns (disparity (H, W) float32 px, whether it came from the cache).
         """
         use_mask = self.params.tool_mask_aware and mask_path is not None and load_mask is not None
-        mask_key = [*_stat_key(mask_path), object_id] if use_mask else None
+        mask_key = _stat_key(mask_path) if use_mask else None
         path = self.path(stem, left_path, right_path, mask_key)
         cached = self.load(path)
         if cached is not None:

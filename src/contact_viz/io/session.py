@@ -50,6 +50,7 @@ from contact_viz.io.decoders import (
     read_depth_rows_m,
     read_disparity_px,
     read_rgb,
+    read_mask_ids,
     read_tool_mask,
 )
 from contact_viz.io.session_files import (
@@ -83,6 +84,7 @@ __all__ = [
     "read_depth_m",
     "read_disparity_px",
     "read_rgb",
+    "read_mask_ids",
     "read_tool_mask",
 ]
 
@@ -108,13 +110,16 @@ class Frame:
     index: int  # position in the session's frame order, 0-based
     stem: str  # file stem shared by left/, right/, masks/, depth/
     timestamp_s: float  # frame time, s
-    tool_mask: np.ndarray | None  # (H, W) bool, True = tool
+    tool_mask: np.ndarray | None  # (H, W) bool, True = tool (the instruments selected; all by default)
     depth_m: np.ndarray | None  # (H, W) float32, m, read-only; invalid where not a finite number > 0
     left_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB
     right_rgb: np.ndarray | None  # (H, W, 3) uint8 RGB; None also when the frame has no right image
     # (H, W) bool: where depth_m is SGBM's fine match (the tools and their surroundings); elsewhere it is the
     # coarse pass's. None: all of depth_m is of one kind (a depth or disparity file, or SGBM without a mask)
     depth_fine: np.ndarray | None = None
+    # (H, W) uint16 object id of every instrument in the mask, 0 = background (binary masks: id 1); with the
+    # mask layer. Instruments not selected (object_ids) are here too: they are never tissue
+    tool_ids: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -175,7 +180,7 @@ class Session:
         right_files: dict[str, Path],
         mask_files: dict[str, Path],
         depth_files: dict[str, Path],
-        object_id: int | None,
+        object_ids: tuple[int, ...] | None,
         depth_source: str = "depth",
         depth_note: str = "depth from depth/",
         stereo: StereoCalibration | None = None,
@@ -203,7 +208,7 @@ class Session:
         self.labels = read_only(labels)
         self.label_source = read_only(label_source)
         self.has_right = bool(right_files)
-        self.object_id = object_id
+        self.object_ids = object_ids  # the instruments selected (None = every object id in the masks)
         self.depth_source = depth_source
         self.depth_note = depth_note
         self._left_files = left_files
@@ -265,16 +270,26 @@ class Session:
             decoded[side] = rgb
         return decoded[side]
 
-    def _mask(self, stem: str, decoded: dict[str, np.ndarray] | None = None) -> np.ndarray:
-        """Frame ``stem``'s tool mask (H, W) bool, rectified if needed; memoized in ``decoded``."""
-        if decoded is not None and "mask" in decoded:
-            return decoded["mask"]
+    def _mask_ids(self, stem: str, decoded: dict[str, np.ndarray] | None = None) -> np.ndarray:
+        """Frame ``stem``'s object ids (H, W) uint16 (every instrument), rectified if needed; memoized in ``decoded``."""
+        if decoded is not None and "mask_ids" in decoded:
+            return decoded["mask_ids"]
         expected = self.root / "masks" / f"{stem}.png"
         path = self._layer_path(self._mask_files, stem, expected, "a tool mask PNG")
-        tool_mask = read_tool_mask(path, self.object_id)
-        self._check_shape(path, tool_mask.shape, "tool mask")
+        ids = read_mask_ids(path, self.object_ids)
+        self._check_shape(path, ids.shape, "tool mask")
         if self.rectification is not None:
-            tool_mask = self.rectification.apply("left", tool_mask, nearest=True)
+            ids = self.rectification.apply("left", ids, nearest=True)
+        if decoded is not None:
+            decoded["mask_ids"] = ids
+        return ids
+
+    def _mask(self, stem: str, decoded: dict[str, np.ndarray] | None = None) -> np.ndarray:
+        """Frame ``stem``'s tool mask (H, W) bool: the selected instruments; memoized in ``decoded``."""
+        if decoded is not None and "mask" in decoded:
+            return decoded["mask"]
+        ids = self._mask_ids(stem, decoded)
+        tool_mask = np.isin(ids, self.object_ids) if self.object_ids else ids != 0
         if decoded is not None:
             decoded["mask"] = tool_mask
         return tool_mask
@@ -308,11 +323,11 @@ class Session:
         disparity, cached = self._sgbm.disparity(
             stem, left_path, right_path,
             lambda: (self._image("left", stem, decoded), self._image("right", stem, decoded)),
-            mask_path=mask_path, load_mask=lambda: self._mask(stem, decoded), object_id=self.object_id,
-        )
+            mask_path=mask_path, load_mask=lambda: self._mask_ids(stem, decoded) != 0,
+        )  # every instrument is taken out of the pair, selected or not
         params = self._sgbm.params
         if mask_path is not None and params.tool_mask_aware and params.region:
-            decoded["depth_fine"] = fine_region(self._mask(stem, decoded), params.region_px)
+            decoded["depth_fine"] = fine_region(self._mask_ids(stem, decoded) != 0, params.region_px)
         return disparity_to_depth(disparity, cal.fx, cal.baseline_m, cal.disparity_offset_px), (
             "cached" if cached else "computed"
         )
@@ -422,6 +437,7 @@ class Session:
             left_rgb=left_rgb,
             right_rgb=right_rgb,
             depth_fine=decoded.get("depth_fine"),
+            tool_ids=decoded.get("mask_ids"),
         )
 
     def iter_frames(
@@ -462,7 +478,7 @@ def _check_layers(layers: Sequence[str]) -> frozenset[str]:
 def open_session(
     path: str | Path,
     *,
-    object_id: int | None = None,
+    object_ids: Sequence[int] | None = None,
     label_params: LabelParams = LabelParams(),
     cache_dir: str | Path | None = None,
     depth_method: str | None = "sgbm",
@@ -471,8 +487,8 @@ def open_session(
 ) -> Session:
     """Open and validate a session directory (see the module docstring for the format).
 
-    ``object_id`` picks one object id from palettized / single-channel masks (default: any
-    nonzero pixel is tool). ``label_params`` sets the force threshold of the contact labels.
+    ``object_ids`` restricts the run to those object ids of palettized / single-channel masks
+    (default: every instrument, each nonzero id); the others stay in ``Frame.tool_ids``, never tissue. ``label_params`` sets the force threshold of the contact labels.
     ``depth_method`` computes depth from the stereo pair when there is neither depth/ nor
     disparity/ ("sgbm", with ``sgbm_params``; None = never compute), cached under ``cache_dir``
     (default: the package cache, see contact_viz.io.cache; never inside the session).
@@ -483,8 +499,10 @@ def open_session(
     """
     if depth_method is not None and depth_method not in DEPTH_METHODS:
         raise ValueError(f"depth_method must be one of {DEPTH_METHODS} or None, got {depth_method!r}")
-    if object_id is not None and (isinstance(object_id, bool) or not isinstance(object_id, int) or object_id < 1):
-        raise ValueError(f"object_id must be a positive integer (0 is background) or None, got {object_id!r}")
+    if object_ids is not None:
+        if not object_ids or any(isinstance(i, bool) or not isinstance(i, int) or i < 1 for i in object_ids):
+            raise ValueError(f"object_ids must be positive integers (0 is background) or None, got {object_ids!r}")
+        object_ids = tuple(sorted(set(object_ids)))
     root = Path(path).expanduser()
     expected = "a session directory (left/, masks/ and K.txt; depth/ optional, see the README)"
     try:
@@ -558,7 +576,7 @@ def open_session(
         right_files=right_files,
         mask_files=mask_files,
         depth_files=source.files,
-        object_id=object_id,
+        object_ids=object_ids,
         depth_source=source.kind,
         depth_note=note,
         stereo=stereo,

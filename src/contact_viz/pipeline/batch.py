@@ -48,7 +48,7 @@ class BatchOptions:
     steps: tuple[str, ...] = ("depth", "extract", "check")  # steps to run (subset of STEPS)
     params: PatchParams = PatchParams()  # patch parameters of extract and view
     label_params: LabelParams = LabelParams()  # label threshold (force, N)
-    object_id: int | None = None  # object id of palettized masks (None = any nonzero)
+    object_ids: tuple[int, ...] | None = None  # object ids of palettized masks to run on (None = every instrument)
     cache_dir: str | None = None  # cache of features and SGBM depth (None = the default cache)
     chunk_frames: int = 256  # frames per depth/extract task, frames
     model_path: str | None = None  # model.json for view/evaluate (evaluate without fit needs it)
@@ -149,7 +149,7 @@ def _chunks(n: int, size: int) -> list[tuple[int, int]]:
 def _step_key(job: SessionJob, step: str, depth_config: object, extra: object = None) -> str:
     return cache_key(job.path, f"batch-{step}", {"patch_params": to_dict(job.params),
                                                   "label_params": to_dict(job.label_params),
-                                                  "object_id": job.object_id, "depth": depth_config,
+                                                  "object_ids": job.object_ids, "depth": depth_config,
                                                   "extra": extra})
 
 
@@ -198,7 +198,7 @@ def run_batch(
         outcome = SessionOutcome(name=path.name, path=str(path))
         outcomes.append(outcome)
         try:
-            session = open_session(path, object_id=options.object_id, label_params=options.label_params,
+            session = open_session(path, object_ids=options.object_ids, label_params=options.label_params,
                                    cache_dir=options.cache_dir)
         except SessionError as exc:
             outcome.error = str(exc)
@@ -206,7 +206,7 @@ def run_batch(
         outcome.name, outcome.frames = session.name, len(session)
         sessions[session.name] = session
         jobs[session.name] = SessionJob(str(path), session.name, options.params, options.label_params,
-                                        options.object_id, options.cache_dir)
+                                        options.object_ids, options.cache_dir)
     names = [o.name for o in outcomes]
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:

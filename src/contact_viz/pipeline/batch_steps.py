@@ -26,7 +26,7 @@ class SessionJob:
     name: str  # the session's name (its result folder under OUT)
     params: PatchParams  # patch parameters
     label_params: LabelParams  # label threshold
-    object_id: int | None  # object id of palettized masks (None = any nonzero)
+    object_ids: tuple[int, ...] | None  # object ids of palettized masks to run on (None = every instrument)
     cache_dir: str | None  # cache of features and SGBM depth (None = the default cache)
 
     def open(self):
@@ -37,7 +37,7 @@ class SessionJob:
 
             raise FileNotFoundError(f"{self.path}: session folder not found on node {platform.node()} "
                                     "(on a cluster every node must see the sessions at the same path)")
-        return open_session(self.path, object_id=self.object_id, label_params=self.label_params,
+        return open_session(self.path, object_ids=self.object_ids, label_params=self.label_params,
                             cache_dir=self.cache_dir)
 
 
@@ -72,7 +72,7 @@ def check_task(job: SessionJob) -> dict:
     from contact_viz.pipeline.check import check_session
 
     start = time.perf_counter()
-    report = check_session(Path(job.path), cache_dir=job.cache_dir, patch_params=job.params, object_id=job.object_id)
+    report = check_session(Path(job.path), cache_dir=job.cache_dir, patch_params=job.params, object_ids=job.object_ids)
     return {"report": report.to_dict(), "seconds": time.perf_counter() - start}
 
 

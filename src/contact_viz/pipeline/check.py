@@ -182,7 +182,8 @@ class CheckReport:
 
 
 def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_dir=None, processes: int = 1,
-                  patch_params: PatchParams | None = None, object_id: int | None = None) -> CheckReport:
+                  patch_params: PatchParams | None = None,
+                  object_ids: Sequence[int] | None = None) -> CheckReport:
     """Run every check on the session at ``session_dir``; see :class:`CheckReport`.
 
     ``cache_dir``: where SGBM depth is cached for sessions without depth (as everywhere).
@@ -194,7 +195,7 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
     started = time.perf_counter()
     params = params or DiagnosticParams()
     patch_params = patch_params or PatchParams()
-    session = open_session(session_dir, cache_dir=cache_dir, object_id=object_id)
+    session = open_session(session_dir, cache_dir=cache_dir, object_ids=object_ids)
     task = _MeasureTask(session, patch_params, params)
     n = len(session)
     if processes == 1:

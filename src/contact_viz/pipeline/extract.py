@@ -27,6 +27,7 @@ from contact_viz import __version__
 from contact_viz.io.atomic import atomic_write
 from contact_viz.io.jsonfile import read_json, write_json
 from contact_viz.params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
+from contact_viz.geometry.instruments import instrument_ids, instrument_patches
 from contact_viz.geometry.patch import PatchResult, compute_patch, patch_depth_rows
 from contact_viz.io.session import BadFrame, Frame, Session
 from contact_viz.pipeline.allocator import keep_freed_memory
@@ -44,6 +45,15 @@ FEATURE_COLUMNS = (
     "label_source", "reason", "score_m", "tool_depth_m", "n_candidates", "shaft_width_px",
     "band_width_px", "invalid_depth_fraction", "tool_area_px", "bleeding_px", "detail",
 )
+TOOL_COLUMN = "tool"  # the instrument's object id, after "frame"; only in sessions with instruments other than id 1
+
+
+def feature_columns(rows: Sequence[dict[str, object]]) -> tuple[str, ...]:
+    """The columns of features.csv for ``rows``: FEATURE_COLUMNS, with TOOL_COLUMN after "frame" when a row
+    names an instrument other than 1 (a session of one instrument, or binary masks, keeps today's columns)."""
+    if any(str(r.get(TOOL_COLUMN, "")) not in ("", "1") for r in rows):
+        return FEATURE_COLUMNS[:1] + (TOOL_COLUMN,) + FEATURE_COLUMNS[1:]
+    return FEATURE_COLUMNS
 
 
 class BadFrameWarning(UserWarning):
@@ -52,10 +62,13 @@ class BadFrameWarning(UserWarning):
 
 @dataclass(frozen=True)
 class FrameResult:
-    """One processed frame: the decoded frame (or why it could not be read) and its patch."""
+    """One processed frame: the decoded frame (or why it could not be read) and its patches."""
 
     frame: Frame | BadFrame
-    patch: PatchResult | None  # None for a BadFrame
+    # the patch of the frame's instrument; with several, of the one nearest the tissue (smallest |distance|);
+    # of the empty mask when there is none. None for a BadFrame
+    patch: PatchResult | None
+    tool_patches: dict[int, PatchResult] | None = None  # {object id: patch} of every selected instrument
 
     @property
     def index(self) -> int:
@@ -91,12 +104,12 @@ def iter_frame_results(
         if future is None:
             warnings.warn(f"frame {item.stem} skipped: {item.reason}", BadFrameWarning, stacklevel=3)
             return FrameResult(item, None)
-        return FrameResult(item, future.result())
+        return FrameResult(item, *future.result())
 
     try:
         for item in frames:
             future = None if isinstance(item, BadFrame) else pool.submit(
-                compute_patch, item.depth_m, item.tool_mask, params)
+                frame_patches, item, params, session.object_ids)
             pending.append((item, future))
             if len(pending) >= 2 * workers:
                 yield finish(*pending.popleft())
@@ -110,28 +123,49 @@ def iter_frame_results(
         frames.close()
 
 
+def frame_patches(frame: Frame, params: PatchParams, selected: Sequence[int] | None = None,
+                  row0: int = 0) -> tuple[PatchResult, dict[int, PatchResult]]:
+    """(the frame's patch, {object id: patch}) of a decoded frame whose depth holds image rows ``row0`` on
+    (see :class:`FrameResult`). One instrument: ``compute_patch`` on the tool mask, as for a binary mask."""
+    depth_m = frame.depth_m
+    ids = frame.tool_ids[row0:row0 + depth_m.shape[0]] if frame.tool_ids is not None else None
+    tools = instrument_ids(ids, selected) if ids is not None else ()
+    if ids is None or (len(tools) <= 1 and not (ids[(ids != 0)] != (tools[0] if tools else 0)).any()):
+        patch = compute_patch(depth_m, frame.tool_mask[row0:row0 + depth_m.shape[0]], params)
+        return patch, ({tools[0]: patch} if tools else {})
+    patches = instrument_patches(depth_m, ids, params, selected)
+    if not patches:
+        return compute_patch(depth_m, np.zeros(ids.shape, bool), params), {}
+    nearest = min(patches, key=lambda k: (not np.isfinite(patches[k].distance_m), abs(patches[k].distance_m)
+                                          if np.isfinite(patches[k].distance_m) else 0.0, k))
+    return patches[nearest], patches
+
+
 def _blank(value: float) -> float | str:
     return "" if value is None or (isinstance(value, float) and math.isnan(value)) else value
 
 
-def feature_row(session: Session, result: FrameResult, patch_row0: int = 0) -> dict[str, object]:
-    """The features.csv row of one processed frame (values ready for csv; '' = empty).
+def feature_row(session: Session, result: FrameResult, patch_row0: int = 0, tool: int | None = None,
+                patch: PatchResult | None = None) -> dict[str, object]:
+    """The features.csv row of one processed frame and instrument (values ready for csv; '' = empty).
 
     ``patch_row0``: the first image row of the band of rows the patch was computed on (its
-    coordinates are relative to it; see patch.patch_depth_rows), 0 for a whole frame."""
+    coordinates are relative to it; see patch.patch_depth_rows), 0 for a whole frame. ``tool``:
+    the instrument's object id and ``patch`` its patch (default: ``result.patch``, no id)."""
     i = result.index
     label = int(session.labels[i])
     row: dict[str, object] = {
         "frame": result.frame.stem,
+        TOOL_COLUMN: "" if tool is None else tool,
         "timestamp": f"{session.timestamps_s[i]:.6f}",
         "force_n": _blank(float(session.force_n[i])),
         "label": "" if label < 0 else label,
         "label_source": str(session.label_source[i]),
     }
-    patch = result.patch
+    patch = result.patch if patch is None else patch
     if patch is None:
         row.update(reason=REASON_BAD_FRAME, detail=result.frame.reason)
-        return {c: row.get(c, "") for c in FEATURE_COLUMNS}
+        return {c: row.get(c, "") for c in (TOOL_COLUMN, *FEATURE_COLUMNS)}
     row.update(
         distance_m=_blank(patch.distance_m),
         signal=_blank(patch.signal),
@@ -147,7 +181,15 @@ def feature_row(session: Session, result: FrameResult, patch_row0: int = 0) -> d
         tool_area_px=patch.tool_area_px,
         bleeding_px=patch.n_bleeding,
     )
-    return {c: row.get(c, "") for c in FEATURE_COLUMNS}
+    return {c: row.get(c, "") for c in (TOOL_COLUMN, *FEATURE_COLUMNS)}
+
+
+def result_rows(session: Session, result: FrameResult, patch_row0: int = 0) -> list[dict[str, object]]:
+    """The features.csv rows of one processed frame: one per instrument (by object id), or one without an
+    id when the frame has none or could not be read."""
+    if not result.tool_patches:
+        return [feature_row(session, result, patch_row0)]
+    return [feature_row(session, result, patch_row0, tool, p) for tool, p in result.tool_patches.items()]
 
 
 @dataclass(frozen=True)
@@ -165,18 +207,24 @@ class FeatureRows:
     indices: tuple[int, ...]
 
     def __call__(self, lo: int, hi: int) -> list[dict[str, object]]:
-        return [self._row(index) for index in self.indices[lo:hi]]
+        return [row for index in self.indices[lo:hi] for row in self._rows(index)]
 
-    def _row(self, index: int) -> dict[str, object]:
+    def _rows(self, index: int) -> list[dict[str, object]]:
+        """One row per selected instrument in the frame, by object id; one row without an id when there is none."""
         frame = self.session.load_frame(index, layers=("mask",))
         if isinstance(frame, BadFrame):
-            return feature_row(self.session, FrameResult(frame, None))
+            return [feature_row(self.session, FrameResult(frame, None))]
         row0, row1 = patch_depth_rows(frame.tool_mask, self.params)
+        if frame.tool_ids is not None and (frame.tool_ids[frame.tool_ids != 0] != frame.tool_ids.max()).any():
+            margin = int(np.ceil(self.params.ring_px))  # other instruments' safety ring reaches this far in
+            row0, row1 = max(row0 - margin, 0), min(row1 + margin, frame.tool_ids.shape[0])
         depth_m = self.session.load_depth_rows(index, row0, row1)
         if isinstance(depth_m, BadFrame):
-            return feature_row(self.session, FrameResult(depth_m, None))
-        patch = compute_patch(depth_m, frame.tool_mask[row0:row1], self.params)
-        return feature_row(self.session, FrameResult(frame, patch), patch_row0=row0)
+            return [feature_row(self.session, FrameResult(depth_m, None))]
+        cropped = dataclasses.replace(frame, depth_m=depth_m, tool_mask=frame.tool_mask[row0:row1],
+                                      tool_ids=None if frame.tool_ids is None else frame.tool_ids[row0:row1])
+        return result_rows(self.session, FrameResult(frame, *frame_patches(cropped, self.params,
+                                                                          self.session.object_ids)), row0)
 
 
 def extract_features(
@@ -233,7 +281,7 @@ def write_features(rows: Sequence[dict[str, object]], path: str | Path, config: 
     """Write ``rows`` to ``path`` (CSV) and ``config`` to ``<path>.json``, each atomically."""
     path = Path(path)
     with atomic_write(path, newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=FEATURE_COLUMNS)
+        writer = csv.DictWriter(handle, fieldnames=feature_columns(rows), extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
     config_path = path.with_name(path.name + ".json")
@@ -285,7 +333,7 @@ def cached_features(
     """
     from contact_viz.io.cache import cache_path
 
-    key = {"patch_params": to_dict(params), "label_params": to_dict(label_params), "object_id": session.object_id,
+    key = {"patch_params": to_dict(params), "label_params": to_dict(label_params), "object_ids": session.object_ids,
            "depth": session.depth_config}
     path = cache_path(session.root, "features", key, ".csv", cache_dir)
     if path.exists():

@@ -65,10 +65,10 @@ def check_distinct_names(features: Sequence[Features]) -> None:
 
 
 def load_features(sources: Sequence[Path], params: PatchParams, label_params: LabelParams = LabelParams(), *,
-                  object_id: int | None = None, cache_dir: str | Path | None = None, processes: int = 1,
+                  object_ids: Sequence[int] | None = None, cache_dir: str | Path | None = None, processes: int = 1,
                   on_open: Callable[[Session], Callable[[int], None] | None] | None = None,
                   on_done: Callable[[Path, Features], None] | None = None) -> list[Features]:
-    """Features of every source, each a session directory (opened with ``object_id`` and
+    """Features of every source, each a session directory (opened with ``object_ids`` and
     ``label_params``, extracted with ``params`` or read from the cache) or a features CSV with the
     same patch parameters. ``on_open(session)`` is called when a session is opened and may return a
     ``progress(frames done)`` callback; ``on_done(source, features)`` when a source's features are
@@ -83,7 +83,7 @@ def load_features(sources: Sequence[Path], params: PatchParams, label_params: La
         if source.is_file():
             features = csv_features(source, params)
         else:
-            session = open_session(source, object_id=object_id, label_params=label_params, cache_dir=cache_dir)
+            session = open_session(source, object_ids=object_ids, label_params=label_params, cache_dir=cache_dir)
             progress = on_open(session) if on_open is not None else None
             features = session_features(session, params, label_params, cache_dir=cache_dir, progress=progress,
                                         processes=processes)
