@@ -206,8 +206,9 @@ class FeatureRows:
     params: PatchParams
     indices: tuple[int, ...]
 
-    def __call__(self, lo: int, hi: int) -> list[dict[str, object]]:
-        return [row for index in self.indices[lo:hi] for row in self._rows(index)]
+    def __call__(self, lo: int, hi: int) -> list[list[dict[str, object]]]:
+        """The rows of each frame of positions lo..hi-1 (a list per frame: one row per instrument)."""
+        return [self._rows(index) for index in self.indices[lo:hi]]
 
     def _rows(self, index: int) -> list[dict[str, object]]:
         """One row per selected instrument in the frame, by object id; one row without an id when there is none."""
@@ -236,8 +237,9 @@ def extract_features(
     processes: int = 1,
     pool: ProcessPool | None = None,
 ) -> list[dict[str, object]]:
-    """One features row per frame of ``session`` (bad frames included, with reason ``bad_frame``,
-    and a :class:`BadFrameWarning` each), computed by :class:`FeatureRows`.
+    """One features row per frame and instrument of ``session`` (one row without an instrument for a frame
+    that has none; bad frames included, with reason ``bad_frame``, and a :class:`BadFrameWarning` each),
+    computed by :class:`FeatureRows`.
 
     ``progress`` is called with the number of frames done. ``processes`` > 1 spreads the frames
     over this process and ``processes - 1`` spawned ones (threads cannot use more than about
@@ -254,10 +256,11 @@ def extract_features(
         raise IndexError(f"frame indices {bad[:5]} out of range for a session of {len(session)} frames")
     task = FeatureRows(session, params, order)
     if pool is not None:
-        rows = pool.map_chunks(task, len(order), chunk_size=CHUNK_FRAMES, progress=progress)
+        per_frame = pool.map_chunks(task, len(order), chunk_size=CHUNK_FRAMES, progress=progress)
     else:
-        rows = run_chunks(task, len(order), chunk_size=CHUNK_FRAMES, processes=processes, progress=progress,
-                          initializer=keep_freed_memory)
+        per_frame = run_chunks(task, len(order), chunk_size=CHUNK_FRAMES, processes=processes, progress=progress,
+                               initializer=keep_freed_memory)
+    rows = [row for frame_rows in per_frame for row in frame_rows]
     for row in rows:
         if row["reason"] == REASON_BAD_FRAME:
             warnings.warn(f"frame {row['frame']} skipped: {row['detail']}", BadFrameWarning, stacklevel=2)
