@@ -76,7 +76,7 @@ def extract(
         min=1, help="Processes to spread the frames over, this one included [default: the number of cores, "
         "at most 8].")] = None,
 ) -> None:
-    """Compute the minimum-distance patch of every frame and write one row per frame."""
+    """Compute the minimum-distance patch of every frame and write one row per frame and instrument."""
     from contact_viz.console import FrameReport, check_output_file
     from contact_viz.pipeline.allocator import keep_freed_memory
     from contact_viz.pipeline.parallel import DEFAULT_PROCESSES, ProcessPool, WorkerError
@@ -114,7 +114,12 @@ def extract(
         _fail(f"{session.root}: no frame could be read ({report.summary()}); nothing written")
     write_features(rows, output, run_config(session, patch_params=params, label_params=label_params))
     found = sum(1 for r in rows if r["distance_m"] != "")
-    typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {bad} unreadable")
+    tools = sorted({r["tool"] for r in rows if r["tool"] != ""})
+    if tools in ([], [1]):
+        typer.echo(f"{output}: {len(rows)} frames, patch found on {found}, {bad} unreadable")
+    else:
+        typer.echo(f"{output}: {len(session)} frames, {len(rows)} rows (instruments "
+                   f"{', '.join(map(str, tools))}), patch found on {found}, {bad} unreadable")
 
 
 @app.command()
@@ -124,6 +129,12 @@ def synth(
     frames: Annotated[int, typer.Option(min=1, help="Number of frames.")] = 120,
     seed: Annotated[int, typer.Option(help="Random seed (same seed and options = same files).")] = 0,
     size: Annotated[str, typer.Option(help="Image size WIDTHxHEIGHT.")] = "1920x1080",
+    tools: Annotated[int, typer.Option(min=1, max=2, help="Instruments in the scene: 1, or 2 (the second one "
+                                       "presses while the first hovers, passes within a few px of it and "
+                                       "crosses in front of it; mask id 2).")] = 1,
+    shaft_elevation_deg: Annotated[Optional[float], typer.Option(
+        help="Angle of the shafts above the tissue base plane, deg (e.g. 8: lying nearly flat); "
+             "default: drawn around the phantom's usual axis (about 35-40 deg).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace the files of an existing session there.")] = False,
 ) -> None:
     """Make a synthetic session with known truth (stereo renders, masks, depth, force, truth.csv)."""
@@ -132,14 +143,19 @@ def synth(
     if phantom not in PHANTOMS:
         _fail(f"--phantom must be one of {', '.join(PHANTOMS)}; got {phantom!r}")
     width, height = _parse_size(size)
-    params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height)
+    try:
+        params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height, tools=tools,
+                             shaft_elevation_deg=shaft_elevation_deg)
+    except ValueError as exc:
+        _fail(str(exc).replace("SynthParams.", "--").replace("_", "-"))
     with _LazyProgress(f"synth {phantom}", frames) as progress:  # no bar before the target is accepted
         try:
             path = generate_session(out_dir, params, overwrite=overwrite,
                                     progress=lambda done, total: progress.update(completed=done))
-        except (FileExistsError, ValueError) as exc:
+        except (FileExistsError, ValueError, RuntimeError) as exc:
             _fail(str(exc).replace("pass overwrite=True", "pass --overwrite"))
-    typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}")
+    instruments = "" if tools == 1 else f" with {tools} instruments"
+    typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}{instruments}")
 
 
 @app.command()
@@ -151,10 +167,14 @@ def fit(
     object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
 ) -> None:
-    """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions."""
+    """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions.
+
+    Several instruments: each instrument's signal is a sequence of its own; in a frame labelled
+    contact the instrument nearest the tissue gets contact and the others none (unless labels.csv
+    labels each instrument: frame,tool,contact); the threshold is chosen on the scene posterior."""
     from contact_viz.console import check_output_file, session_training_problem
-    from contact_viz.model.hmm import LosoEnsemble
     from contact_viz.model.model_file import ContactModel, save_model
+    from contact_viz.pipeline.features import fit_loso
 
     params, label_params = _resolve_params(params_file, contact_force)
     if len(train_sessions) < 2:
@@ -166,14 +186,12 @@ def fit(
     if problem:
         _fail(problem)
     try:
-        ensemble = LosoEnsemble().fit([f.signal for f in features], [f.labels for f in features],
-                                      session_names=[f.name for f in features])
+        ensemble = fit_loso(features)
     except ValueError as exc:
         _fail(str(exc))
     model = ContactModel(
         ensemble=ensemble, patch_params=params, label_params=label_params,
-        training_sessions=tuple({"name": f.name, "path": str(p.resolve()), "frames": len(f.frames)}
-                                for f, p in zip(features, train_sessions)),
+        training_sessions=tuple(f.training_entry(str(p.resolve())) for f, p in zip(features, train_sessions)),
     )
     save_model(model, output)
     typer.echo(f"{output}: {len(features)} LOSO models, threshold {model.threshold:.4f}")
@@ -195,18 +213,21 @@ def evaluate(
     object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
 ) -> None:
-    """Score held-out sessions: the Table-1 metrics per session and their macro mean."""
+    """Score held-out sessions: the Table-1 metrics per session and their macro mean.
+
+    Several instruments: a session is scored on its scene posterior (the max over the instruments in
+    the frame); where labels.csv labels each instrument, a row "SESSION tool ID" per instrument too."""
     from contact_viz.console import check_output_file
-    from contact_viz.model.evaluation import metrics_table, score_session
+    from contact_viz.model.evaluation import metrics_table
     from contact_viz.model.metrics import format_table
+    from contact_viz.pipeline.features import score_features
 
     for path, option in ((per_frame, "--per-frame"), (json_out, "--json")):
         if path is not None:
             check_output_file(path, option, example="metrics.json" if option == "--json" else "per_frame.csv")
     model, features = _model_and_features(model_path, test_sessions, object_ids, cache_dir)
     try:
-        scores = [score_session(model.predict_proba, model.threshold, f.name, f.frames, f.signal, f.labels)
-                  for f in features]
+        scores = [score_features(model.predict_proba, model.threshold, f) for f in features]
         table = metrics_table(scores, model.threshold)
     except ValueError as exc:
         _fail(str(exc))
@@ -228,16 +249,17 @@ def predict(
     object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
 ) -> None:
-    """Contact posteriors for a session, with or without labels."""
+    """Contact posteriors for a session, with or without labels (several instruments: the scene's, and
+    each instrument's in posterior_tool_ID columns)."""
     from contact_viz.console import check_output_file
-    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows, score_session
+    from contact_viz.model.evaluation import per_frame_columns, per_frame_rows
     from contact_viz.paper.tables import write_per_frame
+    from contact_viz.pipeline.features import score_features
 
     check_output_file(output, "-o/--output", example="predictions.csv")
     model, (features,) = _model_and_features(model_path, [session_dir], object_ids, cache_dir)
-    scores = score_session(model.predict_proba, model.threshold, features.name, features.frames,
-                           features.signal, features.labels)
-    write_per_frame(output, PER_FRAME_COLUMNS, per_frame_rows([scores]))
+    scores = score_features(model.predict_proba, model.threshold, features)
+    write_per_frame(output, per_frame_columns([scores]), per_frame_rows([scores]))
     typer.echo(f"{output}: {len(scores.frames)} frames, {int(scores.predicted.sum())} predicted contact "
                f"(threshold {model.threshold:.4f})")
 

@@ -154,11 +154,11 @@ def _model_and_features(model_path: Path, sources: list[Path], object_ids, cache
 
 
 def _write_evaluation(per_frame, json_out, scores, table, model, model_path) -> None:
-    from contact_viz.model.evaluation import PER_FRAME_COLUMNS, per_frame_rows
+    from contact_viz.model.evaluation import per_frame_columns, per_frame_rows
     from contact_viz.paper.tables import write_per_frame
 
     if per_frame is not None:
-        write_per_frame(per_frame, PER_FRAME_COLUMNS, per_frame_rows(scores))
+        write_per_frame(per_frame, per_frame_columns(scores), per_frame_rows(scores))
     if json_out is not None:
         from contact_viz import __version__
         from contact_viz.io.jsonfile import write_json

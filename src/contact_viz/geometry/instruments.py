@@ -36,13 +36,18 @@ def without_other_instruments(depth_m: np.ndarray, tool_ids: np.ndarray, tool_id
     """A copy of ``depth_m`` ((H, W) float32 m) that is NaN on every instrument but ``tool_id`` and within
     ``margin_px`` (Euclidean) of them; ``depth_m`` itself where there is no other instrument."""
     others = (tool_ids != 0) & (tool_ids != tool_id)
-    if not others.any():
+    rows, cols = np.flatnonzero(others.any(axis=1)), np.flatnonzero(others.any(axis=0))
+    if rows.size == 0:
         return depth_m
+    # only around the other instruments (a whole-frame distance transform cost 18 ms per instrument at 1080p)
+    reach = int(np.ceil(margin_px)) + 1
+    y0, y1 = max(rows[0] - reach, 0), min(rows[-1] + reach + 1, others.shape[0])
+    x0, x1 = max(cols[0] - reach, 0), min(cols[-1] + reach + 1, others.shape[1])
+    near = others[y0:y1, x0:x1]
     if margin_px > 0:
-        distance = cv2.distanceTransform((~others).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        others = distance <= margin_px
+        near = cv2.distanceTransform((~near).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= margin_px
     out = np.array(depth_m, dtype=np.float32, copy=True)
-    out[others] = np.nan
+    out[y0:y1, x0:x1][near] = np.nan
     return out
 
 

@@ -14,7 +14,9 @@ The session directory format (the contract)::
       disparity/<stem>.npy  float32 px (FoundationStereo's raw output), used when depth/ is absent
       force.csv           optional: `frame` (stem) or `timestamp` (s) column, plus fx, fy, fz (N)
       frames.csv          optional: frame,timestamp (s); needed when force.csv is indexed by timestamp
-      labels.csv          optional manual labels: frame,contact (0/1); they replace the force labels
+      labels.csv          optional manual labels: frame,contact (0/1); they replace the force labels.
+                          With a tool column (frame,tool,contact): per instrument (object id); a
+                          frame's label is then 1 when any (selected) instrument it names is in contact
       kinematics.csv      optional robot tool pose: timestamp,x_m,y_m,z_m,qx,qy,qz,qw,frame_id (io/kinematics.py)
       tool_tips.csv       optional tool-tip keypoints: frame,x_px,y_px (the RGB baseline's crop centres)
 
@@ -64,6 +66,7 @@ from contact_viz.io.session_files import (
     force_labels,
     missing_inputs,
     natural_key,
+    tool_label_arrays,
 )
 from contact_viz.geometry.stereo import DEPTH_METHODS, SGBMParams, disparity_to_depth
 from contact_viz.geometry.stereo_region import fine_region
@@ -153,6 +156,8 @@ class Session:
         timestamps_s: (n,) float64, s. force_xyz_n: (n, 3) float64, N (NaN = no sample).
         force_n: (n,) float64 magnitude, N (NaN = unknown). labels: (n,) int8 1/0/-1 (unknown).
         label_source: (n,) str "manual" / "force" / "none". has_right: right/ holds images.
+        tool_labels: labels.csv's per-instrument labels (frame,tool,contact): object id -> (n,) int8
+        1/0/-1 (no row), for the selected instruments; None when labels.csv has no tool column.
         depth_source: "depth", "disparity" or "sgbm" (see DEPTH_SOURCES). depth_note: one line
         saying where depth comes from. depth_config: what the depth depends on, for cache keys.
         depth_cache_dir: where SGBM disparities are cached (None for other sources).
@@ -176,6 +181,7 @@ class Session:
         force_n: np.ndarray,
         labels: np.ndarray,
         label_source: np.ndarray,
+        tool_labels: dict[int, np.ndarray] | None = None,
         left_files: dict[str, Path],
         right_files: dict[str, Path],
         mask_files: dict[str, Path],
@@ -207,6 +213,8 @@ class Session:
         self.force_n = read_only(force_n)
         self.labels = read_only(labels)
         self.label_source = read_only(label_source)
+        # labels.csv's per-instrument labels (its tool column): object id -> (n,) int8, -1 = no row; None without
+        self.tool_labels = None if tool_labels is None else {k: read_only(v) for k, v in tool_labels.items()}
         self.has_right = bool(right_files)
         self.object_ids = object_ids  # the instruments selected (None = every object id in the masks)
         self.depth_source = depth_source
@@ -550,8 +558,12 @@ def open_session(
     label_source = np.where(labels >= 0, "force", "none").astype("<U6")
 
     labels_csv = root / "labels.csv"
+    tool_labels = None
     if labels_csv.is_file():
-        manual_index, manual_contact = _read_labels_csv(labels_csv, stems)
+        manual_index, manual_contact, manual_tools = _read_labels_csv(labels_csv, stems)
+        if manual_tools is not None:  # per instrument: the scene is in contact when any instrument is
+            tool_labels, manual_index, manual_contact = tool_label_arrays(
+                len(stems), manual_index, manual_contact, manual_tools, object_ids)
         labels[manual_index] = manual_contact
         label_source[manual_index] = "manual"
 
@@ -572,6 +584,7 @@ def open_session(
         force_n=force_n,
         labels=labels,
         label_source=label_source,
+        tool_labels=tool_labels,
         left_files=left_files,
         right_files=right_files,
         mask_files=mask_files,

@@ -300,22 +300,61 @@ def _read_force_csv(path: Path, stems: list[str], timestamps_s: np.ndarray | Non
     return force
 
 
-def _read_labels_csv(path: Path, stems: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """labels.csv -> (frame indices (k,) int64, contact (k,) int8 in {0, 1})."""
+def _read_labels_csv(path: Path, stems: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """labels.csv -> (frame indices (k,) int64, contact (k,) int8 in {0, 1}, object ids (k,) int64 or None).
+
+    With a ``tool`` column (frame,tool,contact) each row labels one instrument of a frame (one row per
+    frame and instrument); without one (None), each row labels the frame (one row per frame)."""
     header, body = _read_csv(path)
     _require_columns(path, header, ("frame", "contact"), "frame stem, contact 0/1")
     fcol, ccol = header.index("frame"), header.index("contact")
+    tcol = header.index("tool") if "tool" in header else None
     names = [cells[fcol] for _, cells in body]
     contact = np.empty(len(body), dtype=np.int8)
     for r, (line, cells) in enumerate(body):
         if cells[ccol] not in ("0", "1"):
             raise SessionError(path, f"line {line}: expected contact 0 or 1, found {cells[ccol]!r}")
         contact[r] = int(cells[ccol])
+    tools = None
+    if tcol is not None:
+        tools = np.empty(len(body), dtype=np.int64)
+        for r, (line, cells) in enumerate(body):
+            tool = _as_int(cells[tcol].strip())
+            if tool is None or tool < 1:
+                raise SessionError(path, f"line {line}: expected the instrument's object id (an integer >= 1) in "
+                                         f"column tool, found {cells[tcol]!r}")
+            tools[r] = tool
     matched = _match_stems(path, names, stems)
-    _check_unique(path, names, matched)
+    if tools is None:
+        _check_unique(path, names, matched)
+    else:
+        seen: dict[tuple[int, int], str] = {}
+        for name, idx, tool in zip(names, matched.tolist(), tools.tolist()):
+            if idx >= 0 and (idx, tool) in seen:
+                raise SessionError(path, f"expected one row per frame and instrument, found frame {seen[idx, tool]!r} "
+                                         f"and {name!r} for the same stem and tool {tool}")
+            seen[idx, tool] = name
     _warn_unmatched(path, names, matched)
     ok = matched >= 0
-    return matched[ok], contact[ok]
+    return matched[ok], contact[ok], None if tools is None else tools[ok]
+
+
+def tool_label_arrays(n_frames: int, index: np.ndarray, contact: np.ndarray, tools: np.ndarray,
+                      selected: Sequence[int] | None) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+    """labels.csv's per-instrument rows (from ``_read_labels_csv``) as ({object id: (n,) int8, -1 where it
+    has no row}, frame indices, scene contact): the scene label of a frame is 1 when any instrument it
+    labels is in contact, else 0. Only the ``selected`` object ids count (None = all)."""
+    keep = np.ones(tools.shape, dtype=bool) if selected is None else np.isin(tools, list(selected))
+    index, contact, tools = index[keep], contact[keep], tools[keep]
+    per_tool = {}
+    for tool in np.unique(tools).tolist():
+        labels = np.full(n_frames, -1, dtype=np.int8)
+        labels[index[tools == tool]] = contact[tools == tool]
+        per_tool[int(tool)] = labels
+    frames = np.unique(index)
+    scene = np.zeros(n_frames, dtype=np.int8)
+    np.maximum.at(scene, index, contact)
+    return per_tool, frames, scene[frames]
 
 
 def _list_stems(directory: Path, suffixes: Sequence[str]) -> dict[str, Path]:

@@ -10,6 +10,10 @@ Conventions follow hmmlearn: fitted attributes carry a trailing underscore (``me
 ``vars_``, ``transmat_``, ``startprob_``). Unlike hmmlearn, ``predict_proba`` returns the
 *causally filtered* posterior P(contact | x_1..x_t), shape (T,), not the smoothed (T, 2) one.
 
+Several instruments (one signal sequence each, see :mod:`contact_viz.model.instruments`):
+``LosoEnsemble.fit`` takes a session's instrument sequences and chooses the threshold on its scene
+posterior; :class:`SceneStreamingFilter` filters them frame by frame.
+
 Everything here is pure computation on arrays: no I/O.
 """
 
@@ -22,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from contact_viz.model.instruments import scene_posterior
 from contact_viz.params import check_fields, checked
 from contact_viz.params import from_dict as _params_from_dict
 from contact_viz.params import to_dict as _params_to_dict
@@ -286,6 +291,49 @@ def _check_sessions(
     return out
 
 
+def _check_scene_sessions(
+    signals: Sequence[Any], labels: Sequence[Any], names: Sequence[str],
+    scene_labels: Sequence[Any] | None, present: Sequence[Any] | None,
+) -> list[tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray | None]]:
+    """Per session of ``LosoEnsemble.fit``: (its (signal, labels) sequences, its scene labels, where each
+    instrument is present (None for a session of one sequence)); errors name the session."""
+    if isinstance(signals, np.ndarray) or isinstance(labels, np.ndarray):
+        raise ValueError("signals, labels: expected sequences (e.g. lists) of per-session 1-D arrays, got an array")
+    if len(signals) != len(labels):
+        raise ValueError(f"signals, labels: expected one label array per session, got {len(signals)} and {len(labels)}")
+    if len(signals) == 0:
+        raise ValueError("signals: expected at least one session, got none")
+    for what, given in (("scene_labels", scene_labels), ("present", present)):
+        if given is not None and len(given) != len(signals):
+            raise ValueError(f"{what}: expected one entry per session ({len(signals)}), got {len(given)}")
+    out = []
+    for k, (name, sig, lab) in enumerate(zip(names, signals, labels)):
+        if np.ndim(sig) != 2:
+            x = _check_signal(sig, f"signal of {name}")
+            y = _check_labels(lab, f"labels of {name}", x.shape[0])
+            out.append(([(x, y)], y, None))
+            continue
+        rows = np.asarray(sig)
+        lab_rows = np.asarray(lab)
+        if rows.shape[0] == 0 or lab_rows.shape != rows.shape:
+            raise ValueError(f"labels of {name}: expected one label row per instrument signal, shape {rows.shape}, "
+                             f"got {lab_rows.shape}")
+        sequences = []
+        for i in range(rows.shape[0]):
+            x = _check_signal(rows[i], f"signal of {name}, instrument row {i}")
+            sequences.append((x, _check_labels(lab_rows[i], f"labels of {name}, instrument row {i}", x.shape[0])))
+        scene = None if scene_labels is None else scene_labels[k]
+        if scene is None:
+            raise ValueError(f"scene_labels of {name}: required for a session of several instrument sequences")
+        scene = _check_labels(scene, f"scene labels of {name}", rows.shape[1])
+        here = None if present is None else present[k]
+        here = np.ones(rows.shape, dtype=bool) if here is None else np.asarray(here, dtype=bool)
+        if here.shape != rows.shape:
+            raise ValueError(f"present of {name}: expected shape {rows.shape}, got {here.shape}")
+        out.append((sequences, scene, here))
+    return out
+
+
 class SupervisedGaussianHMM:
     """Two-state Gaussian HMM fitted by maximum likelihood on fully labelled sessions.
 
@@ -398,7 +446,8 @@ class LosoEnsemble:
     Fitted attributes:
         models_: list of K fitted SupervisedGaussianHMM.
         session_names_: list of K str, the training sessions in fit order.
-        oof_posteriors_: list of K (T_k,) float64, session k filtered by models_[k] (out of fold).
+        oof_posteriors_: list of K (T_k,) float64, session k filtered by models_[k] (out of fold); for a
+            session of several instruments, its scene posterior (see ``fit``).
         threshold_: float, ``select_f1_threshold`` on the pooled out-of-fold posteriors.
     """
 
@@ -410,8 +459,24 @@ class LosoEnsemble:
         signals: Sequence[Any],
         labels: Sequence[Any],
         session_names: Sequence[str] | None = None,
+        *,
+        scene_labels: Sequence[Any] | None = None,
+        present: Sequence[Any] | None = None,
     ) -> LosoEnsemble:
-        """Fit on K >= 2 sessions (same inputs as ``SupervisedGaussianHMM.fit``), names default to "session k"."""
+        """Fit on K >= 2 sessions (same inputs as ``SupervisedGaussianHMM.fit``), names default to "session k".
+
+        A session with several instruments gives instead their signals ``signals[k]`` (N_k, T_k), one
+        row per instrument (NaN where it is absent or has no patch), with ``labels[k]`` (N_k, T_k) the
+        instruments' training labels (:func:`contact_viz.model.instruments.training_labels`),
+        ``scene_labels[k]`` (T_k,) the scene's labels and ``present[k]`` (N_k, T_k) bool where each
+        instrument is in the frame (None: everywhere); ``scene_labels`` and ``present`` hold None for
+        the sessions given as one sequence. Each fold model is then fitted on every instrument
+        sequence of the other sessions (transitions counted within a sequence); the held-out
+        session's out-of-fold posterior is its scene posterior
+        (:func:`contact_viz.model.instruments.scene_posterior` of its instruments' posteriors), and
+        the threshold is chosen on the pooled scene posteriors against the scene labels: the
+        quantity it is applied to. Sessions of one sequence are fitted and scored exactly as before.
+        """
         n_sessions = len(signals)
         if session_names is None:
             names = [f"session {k}" for k in range(n_sessions)]
@@ -419,19 +484,23 @@ class LosoEnsemble:
             names = [str(n) for n in session_names]
         if len(names) != n_sessions or len(set(names)) != n_sessions:
             raise ValueError(f"session_names: expected {n_sessions} distinct names, got {list(names)}")
-        sessions = _check_sessions(signals, labels, names)
+        sessions = _check_scene_sessions(signals, labels, names, scene_labels, present)
         if n_sessions < 2:
             raise ValueError(f"LosoEnsemble.fit: expected at least 2 training sessions, got {n_sessions}")
         models, oof = [], []
         for k in range(n_sessions):
-            rest = [sessions[i] for i in range(n_sessions) if i != k]
+            rest = [seq for i in range(n_sessions) if i != k for seq in sessions[i][0]]
             try:
                 model = SupervisedGaussianHMM(self.params).fit([x for x, _ in rest], [y for _, y in rest])
             except ValueError as exc:
                 raise ValueError(f"LosoEnsemble.fit, fold leaving out {names[k]}: {exc}") from exc
             models.append(model)
-            oof.append(model.predict_proba(sessions[k][0]))
-        pooled_labels = np.concatenate([y for _, y in sessions])
+            sequences, _, here = sessions[k]
+            if here is None:  # one sequence: its posterior
+                oof.append(model.predict_proba(sequences[0][0]))
+            else:
+                oof.append(scene_posterior(np.stack([model.predict_proba(x) for x, _ in sequences]), here))
+        pooled_labels = np.concatenate([scene for _, scene, _ in sessions])
         try:
             threshold = select_f1_threshold(np.concatenate(oof), pooled_labels)
         except ValueError as exc:
@@ -542,3 +611,46 @@ class StreamingFilter:
         for value in posteriors[1:]:  # the same order of additions as np.mean(..., axis=0) over the stack
             total = total + value
         return float(total / len(new))
+
+
+class SceneStreamingFilter:
+    """:class:`StreamingFilter` per instrument and the scene posterior, fed one frame at a time.
+
+    ``update({object id: signal})`` takes the instruments in the frame (NaN signal = in the frame
+    without a patch) and returns (the scene's P(contact), {object id: P(contact)} of every
+    instrument seen so far). Each instrument's filter runs over every frame (a NaN observation
+    where it is absent; one that first appears at frame t is caught up on t missing frames), and
+    the scene posterior is :func:`contact_viz.model.instruments.scene_posterior`'s max over the
+    instruments in the frame (over all of them in a frame without one), so the values equal
+    ``pipeline.features.score_features`` on the whole session, bit for bit, whatever the number
+    of instruments. Before any instrument was seen it is the prediction of a filter without
+    observations (a session's frames without any instrument give exactly that).
+    """
+
+    def __init__(self, model: SupervisedGaussianHMM | LosoEnsemble) -> None:
+        self._model = model
+        self._blank = StreamingFilter(model)  # fed NaN on every frame: a new instrument's history
+        self._filters: dict[int, StreamingFilter] = {}
+        self.frames = 0
+
+    def reset(self) -> None:
+        """Forget every frame and instrument."""
+        self._blank.reset()
+        self._filters.clear()
+        self.frames = 0
+
+    def update(self, signals: dict[int, float]) -> tuple[float, dict[int, float]]:
+        """Add the next frame's instruments {object id: signal, dec (NaN = no patch)}; returns (scene, each one's)."""
+        for tool in sorted(signals):
+            if tool not in self._filters:
+                caught_up = StreamingFilter(self._model)
+                for _ in range(self.frames):
+                    caught_up.update(math.nan)
+                self._filters[tool] = caught_up
+        blank = self._blank.update(math.nan)
+        each = {tool: f.update(signals.get(tool, math.nan)) for tool, f in sorted(self._filters.items())}
+        self.frames += 1
+        if len(each) == 1:  # one instrument: its posterior, present or not
+            return next(iter(each.values())), each
+        here = [each[tool] for tool in signals]
+        return (max(here) if here else max(each.values(), default=blank)), each

@@ -14,8 +14,14 @@ from contact_viz.pipeline.features import Features
 
 
 def pick_figure_frame(features: Features) -> int:
-    """The frame of the smallest |distance| among frames with a patch (the tool at the tissue), else 0."""
-    distance = np.array([abs(float(r["distance_m"])) if r["distance_m"] != "" else np.inf for r in features.rows])
+    """The frame of the smallest |distance| among frames with a patch (the tool at the tissue), else 0
+    (several instruments: the smallest of any instrument's, the rows of a frame being consecutive)."""
+    position = {stem: i for i, stem in enumerate(features.frames)}
+    distance = np.full(len(features.frames), np.inf)
+    for r in features.rows:
+        if r["distance_m"] != "":
+            i = position[str(r["frame"])]
+            distance[i] = min(distance[i], abs(float(r["distance_m"])))
     return int(np.argmin(distance)) if np.isfinite(distance).any() else 0
 
 

@@ -27,7 +27,7 @@ from contact_viz.paper.profiles import StudyProfile
 from contact_viz.paper.study import Split, read_split
 from contact_viz.paper.synthetic import synthetic_study
 from contact_viz.params import LabelParams, PatchParams, to_dict
-from contact_viz.pipeline.features import Features, session_features
+from contact_viz.pipeline.features import Features, fit_loso, score_features, session_features
 
 log = logging.getLogger(__name__)
 HMM_METHOD = "HMM"  # the HMM's method name in the table
@@ -120,7 +120,7 @@ class HmmRun:
 def _features(session: Session, params: PatchParams, label_params: LabelParams, cache_dir) -> Features:
     start = time.perf_counter()
     features = session_features(session, params, label_params, cache_dir=cache_dir)
-    log.info(f"  features {session.name}: {len(features.rows)} frames" + (
+    log.info(f"  features {session.name}: {len(features.frames)} frames" + (
         " (cached)" if features.cached else f" in {time.perf_counter() - start:.1f} s"))
     return features
 
@@ -131,8 +131,7 @@ def fit_hmm(study: Study, params: PatchParams, label_params: LabelParams, cache_
     train = [_features(s, params, label_params, cache_dir) for s in study.train]
     test = [_features(s, params, label_params, cache_dir) for s in study.test]
     log.info("== LOSO HMM ensemble")
-    ensemble = LosoEnsemble().fit([f.signal for f in train], [f.labels for f in train],
-                                  session_names=[f.name for f in train])
+    ensemble = fit_loso(train)  # several instruments: one sequence each (pipeline.features.fit_loso)
     model = ContactModel(ensemble=ensemble, patch_params=params, label_params=label_params,
                          training_sessions=tuple({"name": s.name, "path": str(s.root), "frames": len(s)}
                                                  for s in study.train))
@@ -141,7 +140,9 @@ def fit_hmm(study: Study, params: PatchParams, label_params: LabelParams, cache_
     for s, f in zip(study.test, test):
         if not np.array_equal(np.asarray(s.labels), f.labels):
             raise ValueError(f"{s.root}: the cached features' labels differ from the session's; clear the cache")
-    result = MethodResult(HMM_METHOD, float(ensemble.threshold_), [ensemble.predict_proba(f.signal) for f in test])
+    threshold = float(ensemble.threshold_)
+    result = MethodResult(HMM_METHOD, threshold,
+                          [score_features(ensemble.predict_proba, threshold, f).posterior for f in test])
     return HmmRun(result, ensemble, test)
 
 

@@ -154,8 +154,11 @@ def _step_key(job: SessionJob, step: str, depth_config: object, extra: object = 
 
 
 def _features_csv(rows: list[dict[str, str]]) -> str:
+    """features.csv as `contact-viz extract` writes it (a tool column only with instruments other than id 1)."""
+    from contact_viz.pipeline.extract import feature_columns
+
     handle = io.StringIO()
-    writer = csv.DictWriter(handle, fieldnames=list(rows[0]), lineterminator="\n")
+    writer = csv.DictWriter(handle, fieldnames=feature_columns(rows), lineterminator="\n", extrasaction="ignore")
     writer.writeheader()
     writer.writerows(rows)
     return handle.getvalue()
@@ -327,7 +330,7 @@ def run_batch(
 
         start = time.perf_counter()
         ready = [n for n in jobs if by_name[n].error is None]
-        run_dataset_steps(summary, out, ready, options, tick)
+        run_dataset_steps(summary, out, ready, options, tick, sessions)
         wall["dataset"] = time.perf_counter() - start
     write_json(out / "summary.json", summary.to_dict())
     return summary

@@ -15,11 +15,12 @@ from PIL import Image
 from contact_viz.io.atomic import atomic_write
 from contact_viz.io.jsonfile import write_json
 from contact_viz.params import to_dict
-from contact_viz.synth.motion import ToolTrack, plan_tool_track, tissue_displacement
+from contact_viz.synth.motion import ToolTrack, tissue_displacement
 from contact_viz.synth.params import SynthParams, STREAM_DEPTH, STREAM_LABELS, STREAM_TEXTURE, stream_rng
 from contact_viz.synth.render import Renderer, tool_parts
 from contact_viz.synth.scene import StereoCamera, stereo_camera, tissue_frame
-from contact_viz.synth.sensors import manual_labels, measured_force, stereo_depth
+from contact_viz.synth.second import plan_tracks
+from contact_viz.synth.sensors import manual_labels, measured_force, scene_force, stereo_depth
 
 
 def davis_palette() -> list[int]:
@@ -77,38 +78,70 @@ def _write_frame(out_dir: Path, stem: str, views, depth: np.ndarray, jpeg_qualit
         path = out_dir / name / f"{stem}.jpg"
         if not cv2.imwrite(str(path), views[name]["image"], [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]):
             raise OSError(f"{path}: could not write the JPEG image")
-    mask = Image.fromarray(views["left"]["tool"].astype(np.uint8))
+    mask = Image.fromarray(views["left"]["tool_id"])
     mask.putpalette(palette)
     mask.save(out_dir / "masks" / f"{stem}.png", compress_level=1)
     np.save(out_dir / "depth" / f"{stem}.npy", depth.astype(np.float32))
 
 
-def sensor_streams(params: SynthParams, track: ToolTrack) -> tuple[np.ndarray, np.ndarray | None]:
+def _as_tracks(tracks: ToolTrack | Sequence[ToolTrack]) -> tuple[ToolTrack, ...]:
+    return (tracks,) if isinstance(tracks, ToolTrack) else tuple(tracks)
+
+
+def sensor_streams(params: SynthParams,
+                   tracks: ToolTrack | Sequence[ToolTrack]) -> tuple[np.ndarray, np.ndarray | None]:
     """What a session records beside its images: the force sensor's readings (F, 3), N (force.csv),
-    and for the pulling task the manual labels (F,) 0/1 (labels.csv; None for palpation)."""
-    force = measured_force(track, params)
+    and for the pulling task the manual labels (F,) 0/1 (labels.csv; None for palpation).
+
+    ``tracks``: every instrument's track (``plan_tracks(params)``; one ToolTrack for one instrument).
+    The force sensor reads the scene's total force, the labels mark contact of any instrument.
+    """
+    tracks = _as_tracks(tracks)
+    force = measured_force(tracks, params)
     if params.task != "pulling":
         return force, None
-    return force, manual_labels(track.contact, params.label_jitter_frames, stream_rng(params, STREAM_LABELS))
+    contact = np.logical_or.reduce([t.contact for t in tracks])
+    return force, manual_labels(contact, params.label_jitter_frames, stream_rng(params, STREAM_LABELS))
 
 
-def _write_tables(out_dir: Path, params: SynthParams, camera: StereoCamera, track: ToolTrack) -> None:
+def scene_truth(tracks: ToolTrack | Sequence[ToolTrack]) -> dict[str, np.ndarray]:
+    """The truth of the scene per frame: ``gap_m`` the smallest gap of the instruments, ``indentation_m``
+    the largest indentation, ``force_true_n`` the magnitude of the total contact force, ``contact``
+    any instrument in contact, ``phase`` instrument 1's phase. (One track: its own values.)"""
+    tracks = _as_tracks(tracks)
+    return {
+        "gap_m": np.min([t.gap_m for t in tracks], axis=0),
+        "indentation_m": np.max([t.indentation_m for t in tracks], axis=0),
+        "force_true_n": np.linalg.norm(scene_force(tracks), axis=1),
+        "contact": np.logical_or.reduce([t.contact for t in tracks]),
+        "phase": tracks[0].phase,
+    }
+
+
+def _write_tables(out_dir: Path, params: SynthParams, camera: StereoCamera, tracks: tuple[ToolTrack, ...]) -> None:
     with atomic_write(out_dir / "K.txt") as f:
         f.write(" ".join(f"{x:.10g}" for x in camera.K.ravel()) + "\n")
         f.write(f"{camera.baseline_m:.10g}\n")
-    force, labels = sensor_streams(params, track)
+    force, labels = sensor_streams(params, tracks)
     with atomic_write(out_dir / "force.csv") as f:
         f.write("frame,fx,fy,fz\n")
         for i, (fx, fy, fz) in enumerate(force):
             f.write(f"{i},{fx:.6f},{fy:.6f},{fz:.6f}\n")
-    magnitude = np.linalg.norm(track.force_true_n, axis=1)
+    truth = scene_truth(tracks)
+    per_tool = len(tracks) > 1
     with atomic_write(out_dir / "truth.csv") as f:
-        f.write("frame,timestamp,gap_m,indentation_m,force_true_n,contact,phase\n")
-        for i in range(track.frames):
-            f.write(
-                f"{i},{track.timestamp_s[i]:.6f},{track.gap_m[i]:.6f},{track.indentation_m[i]:.6f},"
-                f"{magnitude[i]:.6f},{int(track.contact[i])},{track.phase[i]}\n"
+        header = "frame,timestamp,gap_m,indentation_m,force_true_n,contact,phase"
+        if per_tool:
+            header += "".join(f",gap_m_{k},contact_{k}" for k in range(1, len(tracks) + 1))
+        f.write(header + "\n")
+        for i in range(tracks[0].frames):
+            row = (
+                f"{i},{tracks[0].timestamp_s[i]:.6f},{truth['gap_m'][i]:.6f},{truth['indentation_m'][i]:.6f},"
+                f"{truth['force_true_n'][i]:.6f},{int(truth['contact'][i])},{truth['phase'][i]}"
             )
+            if per_tool:
+                row += "".join(f",{t.gap_m[i]:.6f},{int(t.contact[i])}" for t in tracks)
+            f.write(row + "\n")
     if labels is not None:
         with atomic_write(out_dir / "labels.csv") as f:
             f.write("frame,contact\n")
@@ -126,10 +159,13 @@ def generate_session(
     """Render a synthetic session into ``out_dir`` (created) and return its path.
 
     Writes session.json, K.txt (9 numbers of K row-major, then the baseline in m), left/ and
-    right/ JPEGs, masks/ (palettized PNG, 1 = tool in the left view), depth/ (float32 z-depth in m,
-    0 = hole, left view), force.csv (frame,fx,fy,fz in N), truth.csv
-    (frame,timestamp,gap_m,indentation_m,force_true_n,contact,phase) and, for the glove (pulling
-    task), labels.csv (frame,contact). Frame stems are 000000, 000001, ... ``progress(done, total)``
+    right/ JPEGs, masks/ (palettized PNG, 1 = tool in the left view; with two instruments 1 and 2,
+    the nearer one's id where they overlap), depth/ (float32 z-depth in m, 0 = hole, left view;
+    every instrument and the tissue), force.csv (frame,fx,fy,fz in N; the scene's sensor: the total
+    force of all instruments), truth.csv (frame,timestamp,gap_m,indentation_m,force_true_n,contact,
+    phase: the scene's, see ``scene_truth``; with two instruments also gap_m_1,contact_1,gap_m_2,
+    contact_2, each instrument's own) and, for the glove (pulling task), labels.csv (frame,contact).
+    Frame stems are 000000, 000001, ... ``progress(done, total)``
     is called after each frame. Raises FileExistsError for a non-empty ``out_dir`` unless
     ``overwrite`` (then the session files there are replaced; other files are left alone).
     """
@@ -155,15 +191,29 @@ def true_depth(params: SynthParams, indices: Sequence[int]) -> dict[int, np.ndar
     ``params`` makes (re-rendered: depth/ holds the stereo-like depth, with noise, bled tool edges
     and holes). For measuring a depth source against the truth (recipes/sgbm_study.py)."""
     camera, frame = stereo_camera(params), tissue_frame(params)
-    track = plan_tool_track(params)
+    tracks = plan_tracks(params)
     renderer = Renderer(params, camera, frame, stream_rng(params, STREAM_TEXTURE))
     out = {}
     for i in indices:
         i = int(i)
-        deformed = track.press_m[i] > 0 or bool(np.any(track.pull_m[i]))
-        displacement = tissue_displacement(renderer.rest, track, i, params) if deformed else None
-        out[i] = renderer.render(displacement, tool_parts(track, i, params))["left"]["z"].astype(np.float32)
+        out[i] = renderer.render(*_frame_scene(renderer, tracks, i, params))["left"]["z"].astype(np.float32)
     return out
+
+
+def _frame_scene(renderer: Renderer, tracks: tuple[ToolTrack, ...], i: int, params: SynthParams):
+    """What ``Renderer.render`` needs for frame i: the tissue displacement (None: undeformed), the
+    primitives of every instrument and the instrument id of each."""
+    displacement = None
+    for track in tracks:
+        if track.press_m[i] > 0 or bool(np.any(track.pull_m[i])):
+            moved = tissue_displacement(renderer.rest, track, i, params)
+            displacement = moved if displacement is None else displacement + moved
+    parts, ids = [], []
+    for k, track in enumerate(tracks):
+        own = tool_parts(track, i, params)
+        parts += own
+        ids += [k + 1] * len(own)
+    return displacement, parts, ids
 
 
 def _render_session(out_dir: Path, name: str, params: SynthParams,
@@ -172,17 +222,15 @@ def _render_session(out_dir: Path, name: str, params: SynthParams,
     for sub in _SESSION_DIRS:
         (out_dir / sub).mkdir()
     camera, frame = stereo_camera(params), tissue_frame(params)
-    track = plan_tool_track(params)
+    tracks = plan_tracks(params)
     renderer = Renderer(params, camera, frame, stream_rng(params, STREAM_TEXTURE))
     palette = davis_palette()
-    _write_tables(out_dir, params, camera, track)
+    _write_tables(out_dir, params, camera, tracks)
 
     pending: list[Future] = []
     with ThreadPoolExecutor(max_workers=1) as writer:
         for i in range(params.frames):
-            deformed = track.press_m[i] > 0 or bool(np.any(track.pull_m[i]))
-            displacement = tissue_displacement(renderer.rest, track, i, params) if deformed else None
-            views = renderer.render(displacement, tool_parts(track, i, params))
+            views = renderer.render(*_frame_scene(renderer, tracks, i, params))
             left = views["left"]
             depth = stereo_depth(
                 left["z"], views["right"]["z"], left["tool"], left["specular"], camera, params,

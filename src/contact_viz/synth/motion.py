@@ -67,7 +67,9 @@ class ToolTrack:
     dent_flat_m: np.ndarray  # (F,) radius of the flat bottom of the dent (covers both jaws), m
     press_m: np.ndarray  # (F,) depth of the dent along -dent_normal, m (0 = none)
     pull_m: np.ndarray  # (F, 3) displacement of the grasped point when pulling, m (0 = none)
-    gap_m: np.ndarray  # (F,) distance of the tip surface to the undeformed tissue, 0 in contact, m
+    # (F,) distance of the tip surface to the undeformed tissue, 0 in contact, m (two instruments:
+    # plan_tracks measures it to the tissue as the other one deforms it)
+    gap_m: np.ndarray
     indentation_m: np.ndarray  # (F,) tissue displacement under the tip (dent depth or tent height), m
     force_true_n: np.ndarray  # (F, 3) true contact force on the tool, N
     contact: np.ndarray  # (F,) bool, tool touching (or grasping) the tissue
@@ -224,22 +226,58 @@ def _placement_ok(phantom, frame, camera, params, u, v, axis, checks) -> bool:
     return True
 
 
-def _draw_target(rng, phantom, frame, camera, params, checks):
-    """A reachable target (u, v) and tool axis for one cycle."""
-    layout = LAYOUTS[phantom]
-    mean_axis = np.asarray(layout.tool_axis, dtype=np.float64)
+def with_elevation(axis: np.ndarray, frame: TissueFrame, elevation_deg: float | None) -> np.ndarray:
+    """Unit shaft axes (..., 3) turned about the base plane so that the shaft rises ``elevation_deg``
+    above the tissue base plane (toward the camera side) while keeping its direction within the plane;
+    None returns ``axis`` unchanged."""
+    if elevation_deg is None:
+        return axis
+    axis = np.asarray(axis, dtype=np.float64)
+    level = axis - (axis @ frame.normal)[..., None] * frame.normal
+    level /= np.linalg.norm(level, axis=-1, keepdims=True)
+    angle = math.radians(elevation_deg)
+    return math.cos(angle) * level - math.sin(angle) * frame.normal  # toward the tip: into the tissue
+
+
+def mean_tool_axis(phantom: str, mirrored: bool = False) -> np.ndarray:
+    """The phantom's mean unit shaft axis (toward the tip); ``mirrored``: its mirror image about the image's
+    vertical midline (a second instrument entering from the other side)."""
+    mean_axis = np.asarray(LAYOUTS[phantom].tool_axis, dtype=np.float64)
     mean_axis /= np.linalg.norm(mean_axis)
-    u_min, u_max, v_min, v_max = layout.target_box_m
+    if mirrored:
+        mean_axis = mean_axis * np.array([-1.0, 1.0, 1.0])
+    return mean_axis
+
+
+def _draw_target(rng, phantom, frame, camera, params, checks, mean_axis=None, box=None, accept=None):
+    """A reachable target (u, v) and tool axis for one cycle.
+
+    ``mean_axis`` and ``box`` (u_min, u_max, v_min, v_max) default to the phantom's; ``accept(u, v)``
+    (optional) can veto a target before the placement checks. With ``params.shaft_elevation_deg`` the
+    drawn axis is turned to that elevation.
+    """
+    layout = LAYOUTS[phantom]
+    if mean_axis is None:
+        mean_axis = mean_tool_axis(phantom)
+    u_min, u_max, v_min, v_max = layout.target_box_m if box is None else box
     for _ in range(_MAX_TARGET_TRIES):
         u = float(rng.uniform(u_min, u_max))
         v = float(rng.uniform(v_min, v_max))
         axis = mean_axis + rng.normal(0.0, _AXIS_JITTER, 3)
         axis /= np.linalg.norm(axis)
+        axis = with_elevation(axis, frame, params.shaft_elevation_deg)
         if phantom_height(phantom, np.array(u), np.array(v)) < layout.target_min_height_m:
+            continue
+        if accept is not None and not accept(u, v):
             continue
         if _placement_ok(phantom, frame, camera, params, u, v, axis, checks):
             return u, v, axis
-    raise RuntimeError(f"synth: found no reachable tool target on phantom {phantom!r} in {_MAX_TARGET_TRIES} tries")
+    flat = ""
+    if params.shaft_elevation_deg is not None:
+        flat = (f" with the shaft {params.shaft_elevation_deg:g} deg above the tissue plane (a flat shaft only reaches "
+                f"slopes facing it; the broad liver needs about 30 deg)")
+    raise RuntimeError(
+        f"synth: found no reachable tool target on phantom {phantom!r}{flat} in {_MAX_TARGET_TRIES} tries")
 
 
 def _plan_segments(params: SynthParams, rng: np.random.Generator) -> list[_Segment]:
@@ -335,10 +373,21 @@ def plan_tool_track(params: SynthParams) -> ToolTrack:
     indentation > 0, and then the gap is exactly 0.
     """
     rng = stream_rng(params, STREAM_MOTION)
-    phantom, frame = params.phantom, tissue_frame(params)
     st = _sample_segments(_plan_segments(params, rng), params.frames, params.fps)
+    if params.shaft_elevation_deg is not None:  # exact at every frame, not only at the keyframes
+        st["axis"] = with_elevation(st["axis"], tissue_frame(params), params.shaft_elevation_deg)
+    return track_from_states(params, st)
+
+
+def track_from_states(params: SynthParams, st: dict[str, np.ndarray], offset_m: np.ndarray | None = None) -> ToolTrack:
+    """The ToolTrack of per-frame motion states ``st`` (arrays u, v, h, pull, jaw, axis, attached, phase
+    over F frames, as ``_sample_segments`` gives them); ``offset_m`` (F, 3) optionally moves the whole
+    tool (used to make instrument 2 follow instrument 1). Truth as in ``plan_tool_track``."""
+    phantom, frame = params.phantom, tissue_frame(params)
     axis = st["axis"]
     c, q, n, pull_dir = _tool_centres(phantom, frame, params, st["u"], st["v"], st["h"], st["pull"], axis)
+    if offset_m is not None:
+        c = c + offset_m
     hinge, bases, tips = _jaw_geometry(params, c, axis, n, st["jaw"])
 
     # Geometry of contact: where the tool would be without the pull (the grasped tissue moves with it).
@@ -372,7 +421,7 @@ def plan_tool_track(params: SynthParams) -> ToolTrack:
     phase = st["phase"].copy()
     phase[(phase == "press") & ~contact] = "approach"
     return ToolTrack(
-        timestamp_s=np.arange(params.frames, dtype=np.float64) / params.fps,
+        timestamp_s=np.arange(len(c), dtype=np.float64) / params.fps,
         tip_center_m=c,
         axis=axis,
         hinge_m=hinge,
@@ -412,3 +461,19 @@ def tissue_displacement(points_m: np.ndarray, track: ToolTrack, index: int, para
         x = beyond / params.tent_length_m
         out += ((1.0 + x) * np.exp(-x))[:, None] * pull
     return out
+
+
+def tissue_displacement_frames(points_m: np.ndarray, track: ToolTrack, frames: np.ndarray,
+                               params: SynthParams) -> np.ndarray:
+    """``tissue_displacement`` for many frames at once: points (N, P, 3) of frames ``frames`` (N,)
+    -> displacements (N, P, 3), m (the same dent and tent)."""
+    p = np.asarray(points_m, dtype=np.float64)
+    frames = np.asarray(frames)
+    press = track.press_m[frames][:, None]
+    pull = track.pull_m[frames][:, None, :]
+    rho = np.linalg.norm(p - track.dent_center_m[frames][:, None, :], axis=-1)
+    beyond = np.maximum(rho - track.dent_flat_m[frames][:, None], 0.0)
+    dent = press * np.exp(-0.5 * (beyond / params.dent_sigma_m) ** 2)
+    out = -dent[..., None] * track.dent_normal[frames][:, None, :]
+    x = beyond / params.tent_length_m
+    return out + ((1.0 + x) * np.exp(-x))[..., None] * pull

@@ -17,6 +17,7 @@ REFERENCE_WIDTH_PX = 1920  # image width at which the px-valued noise parameters
 # Independent random streams, each seeded by (seed, stream, phantom[, frame]): changing how much one
 # part draws never changes another part.
 STREAM_MOTION, STREAM_TEXTURE, STREAM_DEPTH, STREAM_FORCE, STREAM_LABELS = 101, 202, 303, 404, 505
+STREAM_MOTION_2 = 606  # the second instrument's motion (tools=2): instrument 1's streams stay as they are
 
 
 def stream_rng(params: SynthParams, stream: int, *more: int) -> np.random.Generator:
@@ -86,6 +87,11 @@ class SynthParams:
     raycast_step_px: int = checked(4, ge=1)  # adaptive ray caster lattice at REFERENCE_WIDTH_PX (1 = ray per pixel), px
     mesh_cell_px: float = checked(14.0, gt=0)  # tissue mesh cell size as seen at tissue_distance_m (at most 2 mm), px
     jpeg_quality: int = checked(92, ge=0, le=100)  # JPEG quality of the left/right images, 0-100
+    # instruments in the scene: 1, or 2 (the second one works beside the first; see synth.second), count
+    tools: int = checked(1, ge=1, le=2)
+    # angle of every shaft above the tissue base plane (e.g. 8 = lying nearly flat), deg; None: drawn per
+    # cycle around the phantom's mean tool axis (about 35-40 deg)
+    shaft_elevation_deg: float | None = checked(None, gt=0, lt=90)
 
     def __post_init__(self) -> None:
         check_fields(self)

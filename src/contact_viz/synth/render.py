@@ -9,9 +9,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from contact_viz.synth.motion import ToolTrack, LAYOUTS, SHAFT_LENGTH_M
+from contact_viz.synth.motion import ToolTrack, LAYOUTS
 from contact_viz.synth.params import REFERENCE_WIDTH_PX, SynthParams
 from contact_viz.synth.scene import StereoCamera, TissueFrame, phantom_height, surface_points
+from contact_viz.synth.tools import Primitive, tool_primitives
 
 
 @dataclass(frozen=True)
@@ -42,29 +43,12 @@ _CYL_SEGMENTS = 48  # facets around a cylinder, count
 _SPHERE_RES = 16  # open3d sphere resolution, count
 
 
-@dataclass(frozen=True, eq=False)
-class _Part:
-    """One primitive of the tool: a cylinder a->b or a sphere at a."""
-
-    kind: str  # "cylinder" or "sphere"
-    a: np.ndarray  # cylinder start or sphere centre, m
-    b: np.ndarray | None  # cylinder end, m
-    radius: float  # m
-    material: int  # index into _TOOL_MATERIALS
+_Part = Primitive  # one primitive of a tool (synth.tools)
 
 
 def tool_parts(track: ToolTrack, index: int, params: SynthParams) -> list[_Part]:
     """The tool of frame ``index`` as primitives: shaft, wrist and two capsule jaws."""
-    axis, hinge = track.axis[index], track.hinge_m[index]
-    wrist_end = hinge - axis * params.wrist_length_m
-    parts = [
-        _Part("cylinder", wrist_end, wrist_end - axis * SHAFT_LENGTH_M, params.shaft_diameter_m / 2, 0),
-        _Part("cylinder", hinge + axis * 0.0015, wrist_end, params.wrist_radius_m, 1),
-    ]
-    for base, tip in zip(track.jaw_bases_m[index], track.jaw_tips_m[index]):
-        parts.append(_Part("cylinder", base, tip, params.jaw_radius_m, 2))
-        parts.append(_Part("sphere", tip, None, params.jaw_radius_m, 2))
-    return parts
+    return tool_primitives(track, index, params)
 
 
 def _value_noise(rng, shape, cell_texels: float) -> np.ndarray:
@@ -407,11 +391,14 @@ class Renderer:
         normal_grid /= np.linalg.norm(normal_grid, axis=-1, keepdims=True)
         return normal_grid.astype(np.float32)
 
-    def render(self, displacement: np.ndarray | None, parts: list[_Part]) -> dict[str, dict[str, np.ndarray]]:
-        """Both views of one frame: BGR uint8 image, z-depth (0 = miss), tool mask, specular radiance.
+    def render(self, displacement: np.ndarray | None, parts: list[_Part],
+               part_tools: list[int] | None = None) -> dict[str, dict[str, np.ndarray]]:
+        """Both views of one frame: BGR uint8 image, z-depth (0 = miss), tool mask, tool id, specular radiance.
 
         ``displacement`` (N, 3) moves the tissue vertices ``rest`` (m); None = undeformed, which
         reuses a cached scene (building the acceleration structure is a large part of a frame).
+        ``parts`` are the primitives of every tool; ``part_tools`` gives each one's tool id (1, 2, ...;
+        default all 1). ``tool_id`` (H, W) uint8 is the id of the nearest tool seen at each pixel, 0 = none.
         """
         if displacement is None:
             if self._rest_cache is None:
@@ -421,9 +408,11 @@ class Renderer:
             vertices = self.rest + displacement
             tissue_scene, normal_grid = self._tissue_scene(vertices), self._normal_grid(vertices)
         scenes = (tissue_scene, self._tool_scene(parts))
+        lookup = np.zeros(len(parts) + 2, np.uint8)  # by geometry id + 1: miss, tissue, part 0, part 1, ...
+        lookup[2:] = 1 if part_tools is None else part_tools
         views = {}
         for name, origin in (("left", np.zeros(3)), ("right", np.array([self.camera.baseline_m, 0.0, 0.0]))):
             z, gid, gi, gj = self._trace(scenes, origin)
             bgr, specular = self._shade(origin, z, gid, gi, gj, normal_grid, parts)
-            views[name] = {"image": bgr, "z": z, "tool": gid > 0, "specular": specular}
+            views[name] = {"image": bgr, "z": z, "tool": gid > 0, "tool_id": lookup[gid + 1], "specular": specular}
         return views

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -12,10 +13,25 @@ from contact_viz.synth.params import REFERENCE_WIDTH_PX, SynthParams, STREAM_FOR
 from contact_viz.synth.scene import StereoCamera
 
 
-def measured_force(track: ToolTrack, params: SynthParams) -> np.ndarray:
-    """Force sensor readings (F, 3), N: the true force plus Gaussian noise per axis."""
+def scene_force(tracks: ToolTrack | Sequence[ToolTrack]) -> np.ndarray:
+    """The true contact force (F, 3), N, on all the instruments together (one track: its own)."""
+    if isinstance(tracks, ToolTrack):
+        return tracks.force_true_n
+    total = tracks[0].force_true_n
+    for track in tracks[1:]:
+        total = total + track.force_true_n
+    return total
+
+
+def measured_force(tracks: ToolTrack | Sequence[ToolTrack], params: SynthParams) -> np.ndarray:
+    """Force sensor readings (F, 3), N: the true force plus Gaussian noise per axis.
+
+    The sensor is the scene's: given every instrument's track it reads the total contact force of
+    all of them (``scene_force``; with two instruments, the sum of both).
+    """
+    force = scene_force(tracks)
     rng = stream_rng(params, STREAM_FORCE)
-    return track.force_true_n + rng.normal(0.0, params.force_noise_n, track.force_true_n.shape)
+    return force + rng.normal(0.0, params.force_noise_n, force.shape)
 
 
 def manual_labels(contact: np.ndarray, jitter_frames: int, rng: np.random.Generator) -> np.ndarray:

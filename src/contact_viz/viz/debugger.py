@@ -5,7 +5,17 @@
 every distance, signal and bad frame is the one the features file has), prepares what each
 frame shows (point cloud, patch geometry, decimated depth, causal HMM posterior, diagnostics) and
 hands it to :mod:`contact_viz.viz.rerun_log`. Nothing is collected across frames: memory stays flat
-however long the session is. :func:`contact_viz.viz.rerun_log.open_recording` makes the ``rr.RecordingStream`` with the
+however long the session is.
+
+Several instruments (object ids of the masks): every instrument in a frame
+(``FrameResult.tool_patches``) gets its own layers, box, patch points, gap arrow and series
+(:class:`contact_viz.viz.rerun_log.InstrumentLayers`; the entity paths are in
+:mod:`contact_viz.viz.entities`), and with a model its own causal posterior; the scene's posterior is
+the max over the instruments in the frame. Each frame names the instrument in contact (the largest
+posterior at or above the threshold; without a model the nearest instrument, the one
+``FrameResult.patch`` is), and the summary the nearest instrument of the run.
+
+:func:`contact_viz.viz.rerun_log.open_recording` makes the ``rr.RecordingStream`` with the
 chosen sinks (an .rrd file, a viewer to spawn or connect to, or a served web viewer).
 
 Images. The left and right images are read by background threads of their own (not by the
@@ -21,6 +31,7 @@ Library code: no typer, no printing.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 import warnings
@@ -49,6 +60,7 @@ from contact_viz.geometry.tooltip import tool_tip_xy
 
 __all__ = [
     "DebuggerOptions",
+    "InstrumentPosteriors",
     "RunSummary",
     "run_debugger",
     "select_frames",
@@ -113,6 +125,48 @@ class RunSummary:
     prepare_s: float  # point cloud, patch geometry, depth preview, posterior, the checks, s
     log_s: float  # Rerun calls and flushes, s
     diagnostic_ranges: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # code -> (first, last) frame runs
+    instrument_frames: dict[int, int] = field(default_factory=dict)  # object id -> readable frames it is in
+    nearest_frames: dict[int, int] = field(default_factory=dict)  # object id -> frames it was the nearest instrument
+    contact_frames: dict[int, int] = field(default_factory=dict)  # with a model: object id -> frames it was in contact
+    closest: tuple[int, float, int] | None = None  # (object id, distance mm, frame): the run's smallest |distance|
+    with_model: bool = False  # the run had a model (contact_frames is meaningful)
+
+    @property
+    def nearest_instrument(self) -> int | None:
+        """The instrument nearest the tissue on the most frames (ties: the lowest object id); None if no frame
+        had an instrument with a distance."""
+        if not self.nearest_frames:
+            return None
+        return min(self.nearest_frames, key=lambda k: (-self.nearest_frames[k], k))
+
+    def instrument_lines(self) -> list[str]:
+        """The instruments' part of the report: which were seen, the nearest one, which were in contact."""
+        out = []
+        if len(self.instrument_frames) > 1:
+            out.append("instruments: " + ", ".join(f"{k} on {n} frame{'s' * (n != 1)}"
+                                                   for k, n in sorted(self.instrument_frames.items())))
+        nearest = self.nearest_instrument
+        if nearest is not None:
+            others = [f"{k} on {n}" for k, n in sorted(self.nearest_frames.items(), key=lambda kv: (-kv[1], kv[0]))
+                      if k != nearest]
+            n = self.nearest_frames[nearest]
+            text = f"nearest instrument: {nearest} (nearest on {n} frame{'s' * (n != 1)}"
+            text += "".join(f", {o}" for o in others) + ")"
+            if self.closest is not None:
+                tool, distance_mm, frame = self.closest
+                who = f"instrument {tool}, " if len(self.instrument_frames) > 1 else ""
+                text += f"; closest: {who}{distance_mm:.1f} mm at frame {frame}"
+            out.append(text)
+        elif self.instrument_frames:
+            out.append("nearest instrument: none (no frame had a distance)")
+        if self.with_model and self.instrument_frames:
+            if self.contact_frames:
+                out.append("in contact: " + ", ".join(
+                    f"instrument {k} on {n} frame{'s' * (n != 1)}"
+                    for k, n in sorted(self.contact_frames.items(), key=lambda kv: (-kv[1], kv[0]))))
+            else:
+                out.append("in contact: no instrument on any frame (no posterior at or above the threshold)")
+        return out
 
     @property
     def frames_per_s(self) -> float:
@@ -124,6 +178,7 @@ class RunSummary:
                + (", interrupted" if self.interrupted else "")]
         out.append(f"time: next frame {self.wait_s:.1f} s, images {self.image_wait_s:.1f} s, "
                    f"prepare {self.prepare_s:.1f} s, log {self.log_s:.1f} s")
+        out += self.instrument_lines()
         fired = {code: n for code, n in self.diagnostic_counts.items() if n}
         if fired:
             out.append("diagnostics:")
@@ -288,6 +343,84 @@ class _VideoStreams:
 
 
 # --------------------------------------------------------------------------------------------
+# Several instruments
+# --------------------------------------------------------------------------------------------
+
+
+class InstrumentPosteriors:
+    """Causal HMM posteriors of every instrument and of the scene, frame by frame.
+
+    (contact_viz.model has no streaming per-instrument filter yet, so the debugger runs one
+    :class:`~contact_viz.model.hmm.StreamingFilter` per instrument id and combines them with the max over the
+    instruments present, the rule of the scene posterior.) Each instrument's posterior is ``forward_filter`` on
+    its own signal over every frame shown, NaN where it is absent or the frame could not be read (a
+    filter started on the frame an instrument first appears copies a filter that has run on NaN since the first
+    frame: the same recursion bit for bit). The scene's posterior is the max over the instruments in the frame;
+    in a frame without any, the max over every instrument seen so far (their one-step predictions), or the
+    no-instrument filter's before the first. With one instrument it is that instrument's posterior: exactly
+    the single StreamingFilter on ``FrameResult.patch.signal`` that the debugger ran before.
+    """
+
+    def __init__(self, ensemble) -> None:
+        self._unseen = StreamingFilter(ensemble)  # fed NaN on every frame: an instrument not seen yet
+        self.filters: dict[int, StreamingFilter] = {}
+
+    def update(self, signals: dict[int, float]) -> tuple[float, dict[int, float]]:
+        """Add one frame: ``signals`` {object id: signal} of the instruments in it ({} for none, or a bad
+        frame). Returns (scene posterior, {object id: posterior} of every instrument seen so far)."""
+        for tool in sorted(signals.keys() - self.filters.keys()):
+            self.filters[tool] = copy.deepcopy(self._unseen)
+        each = {tool: f.update(signals.get(tool, math.nan)) for tool, f in self.filters.items()}
+        unseen = self._unseen.update(math.nan)
+        present = [each[tool] for tool in signals]
+        scene = max(present) if present else max(each.values()) if each else unseen
+        return scene, each
+
+
+def nearest_instrument(tool_patches: dict) -> int | None:
+    """The instrument nearest the tissue: the smallest |distance| (ties: the lowest object id), as
+    :func:`contact_viz.pipeline.extract.frame_patches` picks ``FrameResult.patch``; None if none has a distance."""
+    finite = {k: abs(p.distance_m) for k, p in tool_patches.items() if math.isfinite(p.distance_m)}
+    return min(finite, key=lambda k: (finite[k], k)) if finite else None
+
+
+def contact_instrument(posteriors: dict[int, float], threshold: float) -> tuple[int | None, int | None]:
+    """(the instrument in contact, the instrument with the largest posterior) among ``posteriors`` {object id:
+    posterior} of the instruments in a frame: in contact = the largest posterior, if at or above ``threshold``
+    (ties: the lowest object id)."""
+    if not posteriors:
+        return None, None
+    top = min(posteriors, key=lambda k: (-posteriors[k], k))
+    return (top if posteriors[top] >= threshold else None), top
+
+
+def contact_text(tool_patches: dict, posteriors: dict[int, float] | None, threshold: float | None,
+                 contact: int | None, top: int | None) -> str:
+    """The frame's ENTITY_CONTACT text: the instrument in contact (with a model) or nearest (without),
+    then each instrument's distance (and posterior)."""
+    if not tool_patches:
+        return "no instrument in this frame"
+    if posteriors is not None:
+        if contact is not None:
+            head = f"in contact: instrument {contact} (P {posteriors[contact]:.2f} >= threshold {threshold:.2f})"
+        else:
+            head = (f"no instrument in contact (largest P: instrument {top}, {posteriors[top]:.2f} < threshold "
+                    f"{threshold:.2f})")
+    elif contact is not None:
+        head = f"nearest instrument: {contact} ({tool_patches[contact].distance_m * 1000:.1f} mm)"
+    else:
+        head = "nearest instrument: none (no instrument has a distance in this frame)"
+    lines = [head]
+    for tool, patch in sorted(tool_patches.items()):
+        d = patch.distance_m
+        text = f"instrument {tool}: " + (f"{d * 1000:.1f} mm" if math.isfinite(d) else "no distance")
+        if posteriors is not None:
+            text += f", P {posteriors[tool]:.2f}"
+        lines.append(text)
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
 # The run loop
 # --------------------------------------------------------------------------------------------
 
@@ -312,6 +445,21 @@ def _kinematic_tip(session: Session, frame, pose_of: np.ndarray, options: Debugg
     mask_tip = tool_tip_xy(tool_mask) if tool_mask is not None else None
     return kinematic_tip(np.asarray(options.hand_eye), kin.position_m[row], kin.quaternion_xyzw[row], K,
                          mask_tip, getattr(frame, "depth_m", None))
+
+
+def _instrument_view(tool: int, patch, depth_m: np.ndarray, K: np.ndarray, step: int, options: DebuggerOptions,
+                     posterior: float | None = None) -> rerun_log.InstrumentView:
+    """What the viewer shows of one instrument's patch: its layers on the depth grid, its box there, its 3D
+    geometry."""
+    window = patch.window_xyxy
+    return rerun_log.InstrumentView(
+        tool=tool,
+        patch=patch,
+        depth_layers=np.ascontiguousarray(patch.layer_ids[::step, ::step]),
+        depth_window_xyxy=None if window is None else tuple(v / step for v in window),
+        geometry=patch_geometry(depth_m, K, patch, options.patch_params),
+        posterior=posterior,
+    )
 
 
 def run_debugger(
@@ -354,7 +502,15 @@ def run_debugger(
                                  baseline_m=float(session.calibration.baseline_m), image_width=session.image_size[1],
                                  depth_source=session.depth_source)
     pose_of = _pose_samples(session, options)  # (n,) pose row per frame (-1 none), or None without --hand-eye
-    stream = None if model is None else StreamingFilter(model.ensemble)
+    stream = None if model is None else InstrumentPosteriors(model.ensemble)
+    selected = getattr(session, "object_ids", None)
+    # the primary instrument (single-instrument entity paths): the lowest selected id, else 1 (a binary mask's)
+    instruments = rerun_log.InstrumentLayers(min(selected) if selected else 1, with_model=model is not None,
+                                             several=bool(selected) and len(selected) > 1)
+    instrument_frames: dict[int, int] = {}
+    nearest_frames: dict[int, int] = {}
+    contact_frames: dict[int, int] = {}
+    closest: tuple[int, float, int] | None = None
     reader = _ImageReader(session, options, with_right)
 
     results = iter_frame_results(session, options.patch_params, layers=("mask", "depth"), indices=indices)
@@ -381,14 +537,27 @@ def run_debugger(
             # slower, 20.4 against 22.5 frames/s, 1080p JPEG session, --images jpeg: the threads contend for the GIL)
             diag = tracker.update(result, shown.left_grey, shown.right_grey, evidence=True)
             diagnostics = diag.fired
-            posterior = predicted = None
+            tools = dict(result.tool_patches or {}) if patch is not None else {}  # {object id: PatchResult}
+            posterior = predicted = each = None
+            nearest = contact = top = nearest_instrument(tools)  # without a model: the nearest one is named
             if stream is not None:
-                posterior = stream.update(math.nan if patch is None else patch.signal)
+                posterior, each = stream.update({k: p.signal for k, p in tools.items()})
                 predicted = posterior >= model.threshold
+                contact, top = contact_instrument({k: each[k] for k in tools}, model.threshold)
+            for tool, tool_patch in tools.items():
+                instrument_frames[tool] = instrument_frames.get(tool, 0) + 1
+                d = tool_patch.distance_m
+                if math.isfinite(d) and (closest is None or abs(d) * 1000 < abs(closest[1])):
+                    closest = (tool, d * 1000, frame.index)
+            if nearest is not None:
+                nearest_frames[nearest] = nearest_frames.get(nearest, 0) + 1
+            if stream is not None and contact is not None:
+                contact_frames[contact] = contact_frames.get(contact, 0) + 1
             if patch is None:
                 bad += 1
                 t3 = time.perf_counter()
-                rerun_log.log_bad_frame(rec, frame, posterior=posterior, predicted=predicted, diagnostics=diagnostics)
+                rerun_log.log_bad_frame(rec, frame, posterior=posterior, predicted=predicted, diagnostics=diagnostics,
+                                        instruments=instruments, contact_text="this frame could not be read")
                 depth_kind.log(rec, None)
             else:
                 problem = no_patch_problem(patch.reason, patch.invalid_depth_fraction)
@@ -396,8 +565,12 @@ def run_debugger(
                     layer = "mask" if problem == FULL_MASK else "depth"
                     warnings.warn(no_patch_message(frame.stem, problem, session.layer_file(layer, frame.stem)),
                                   NoPatchWarning, stacklevel=2)
-                window = patch.window_xyxy
                 kind_ids = rerun_log.depth_kind_ids(frame.depth_fine, step)
+                # each instrument's layers; a frame without any shows its (empty) patch as the primary's
+                views = [_instrument_view(tool, tool_patch, frame.depth_m, K, step, options,
+                                          None if each is None else each[tool])
+                         for tool, tool_patch in sorted(tools.items())] or [
+                    _instrument_view(instruments.primary, patch, frame.depth_m, K, step, options)]
                 view = rerun_log.FrameView(
                     left_jpeg=shown.left_jpeg,
                     left_rgb=shown.left_rgb,
@@ -408,20 +581,21 @@ def run_debugger(
                     has_right=shown.has_right,
                     depth_u16=depth_preview(frame.depth_m, step, options.depth_units_per_m),
                     depth_units_per_m=options.depth_units_per_m,
-                    depth_layers=np.ascontiguousarray(patch.layer_ids[::step, ::step]),
-                    depth_window_xyxy=None if window is None else tuple(v / step for v in window),
+                    instruments=views,
                     cloud=depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy,
                                       params=options.cloud) if options.points else None,
-                    geometry=patch_geometry(frame.depth_m, K, patch, options.patch_params),
                     posterior=posterior,
                     predicted=predicted,
                     diagnostics=diagnostics,
                     diagnostic_scores=diag.scores,
                     evidence=diag.evidence,
                     notes=shown.notes,
+                    contact_tool=contact,
+                    contact_text=contact_text(tools, None if each is None else {k: each[k] for k in tools},
+                                              None if model is None else model.threshold, contact, top),
                 )
                 t3 = time.perf_counter()
-                rerun_log.log_frame(rec, result, view)
+                rerun_log.log_frame(rec, result, view, instruments)
                 depth_kind.log(rec, kind_ids)
                 if videos is not None:
                     videos.feed(frame.index, shown)
@@ -462,4 +636,9 @@ def run_debugger(
         image_wait_s=image_wait_s,
         prepare_s=prepare_s,
         log_s=log_s,
+        instrument_frames=dict(sorted(instrument_frames.items())),
+        nearest_frames=dict(sorted(nearest_frames.items())),
+        contact_frames=dict(sorted(contact_frames.items())),
+        closest=closest,
+        with_model=model is not None,
     )

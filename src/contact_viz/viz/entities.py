@@ -32,8 +32,34 @@ Entity tree (the README lists it too)::
     series/diagnostics/score/<code>  Scalars: the check's measured value / its threshold (> 1 fires), clipped at 3
     world/camera/left/evidence/residual  EncodedImage: stereo residual |left - warped right| near the tool (fired frames)
     world/camera/left/evidence/contour   Points2D: mask contour, green on an image edge, red off (fired frames)
+    contact                        TextDocument: the instrument in contact at this frame (with a model: the largest
+                                   instrument posterior at or above the threshold; without: the nearest instrument)
     log                            TextLog: bad frames, diagnostics, the no-model hint
     config                         TextDocument (static): the run's resolved configuration (JSON)
+
+Several instruments (object ids of SAM2 masks, :attr:`contact_viz.io.session.Frame.tool_ids`). Each
+instrument has its own layers, box, patch points, gap arrow and series (:data:`TOOL_ENTITIES`). The
+*primary* instrument (the lowest selected object id, or id 1 when none is selected: a binary mask's only
+instrument) keeps the single-instrument paths above, so a session of one instrument records what it
+always did; every other instrument ``k`` logs the same things one level down, at
+``<entity>/tools/<k>`` (:func:`tool_entity`)::
+
+    world/camera/left/layers/tools/<k>    SegmentationImage of instrument k's layer classes, with its own
+                                          AnnotationContext (static; the instrument's colours)
+    world/camera/left/patch/tools/<k>     Boxes2D: its patch window
+    world/camera/depth/layers/tools/<k>   its layers on the depth grid (AnnotationContext too)
+    world/camera/depth/patch/tools/<k>    its patch window on the depth grid
+    world/patch/{tissue,tool,gap}/tools/<k>  its patch points and gap arrow
+    series/distance/tools/<k>             Scalars: its patch distance, mm
+    series/signal/tools/<k>               Scalars: its signal
+    series/contact/posterior/tools/<k>    Scalars: instrument k's own causal posterior, for every instrument
+                                          (the primary's too: series/contact/posterior is the scene's, the max
+                                          over the instruments in the frame); once the session has shown a
+                                          second instrument, with a model
+
+A frame without instrument ``k`` clears its entities (and breaks its series with a NaN), so a stale
+layer never shows. The per-instrument series are under their plot's origin, so the default layout
+plots every instrument.
 
 Timelines: ``frame`` (sequence, the frame's index in the session) and ``time`` (duration, s).
 """
@@ -81,10 +107,15 @@ __all__ = [
     "ENTITY_LEFT_MASK_TIP",
     "ENTITY_SERIES_TIP",
     "ENTITY_CONFIG",
+    "ENTITY_CONTACT",
     "TIMELINE_FRAME",
     "TIMELINE_TIME",
     "PER_FRAME_ENTITIES",
     "PATCH_ENTITIES",
+    "TOOL_ENTITIES",
+    "TOOL_LAYER_ENTITIES",
+    "TOOLS_PART",
+    "tool_entity",
     "diagnostic_entity",
     "diagnostic_score_entity",
 ]
@@ -135,6 +166,7 @@ ENTITY_LEFT_KINEMATIC_TIP = "world/camera/left/kinematic_tip"  # Points2D: its p
 ENTITY_LEFT_MASK_TIP = "world/camera/left/mask_tip"  # Points2D: the tool tip estimated from the mask
 ENTITY_SERIES_TIP = "series/tip"  # Scalars error_px, error_mm: kinematic tip vs mask tip
 ENTITY_CONFIG = "config"  # TextDocument (static): the resolved configuration of the run, JSON
+ENTITY_CONTACT = "contact"  # TextDocument per frame: which instrument is in contact (or nearest), in words
 
 TIMELINE_FRAME = "frame"  # sequence timeline: frame index in the session
 TIMELINE_TIME = "time"  # duration timeline: session time, s
@@ -146,6 +178,16 @@ PER_FRAME_ENTITIES = (
     ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP,
 )
 PATCH_ENTITIES = (ENTITY_LEFT_PATCH, ENTITY_DEPTH_PATCH, ENTITY_PATCH_TISSUE, ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP)
+
+TOOLS_PART = "tools"  # the path part before an instrument's object id (tool_entity)
+TOOL_LAYER_ENTITIES = (ENTITY_LEFT_LAYERS, ENTITY_DEPTH_LAYERS)  # each instrument's SegmentationImages
+TOOL_ENTITIES = TOOL_LAYER_ENTITIES + PATCH_ENTITIES  # what every instrument has of its own in the images and 3D
+
+
+def tool_entity(entity: str, tool: int) -> str:
+    """The path of instrument ``tool``'s (object id) own ``entity``: ``<entity>/tools/<tool>`` (the primary
+    instrument's layers and series are ``entity`` itself: see the module docstring)."""
+    return f"{entity}/{TOOLS_PART}/{int(tool)}"
 
 
 def diagnostic_entity(code: str) -> str:

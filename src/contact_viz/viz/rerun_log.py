@@ -24,6 +24,7 @@ from rerun import RecordingStream
 
 from contact_viz.checks.frame import FrameEvidence
 from contact_viz.viz.diagnostics import DIAGNOSTIC_CODES, SESSION_DIAGNOSTIC_CODES, Diagnostic
+from contact_viz.geometry.patch import PatchResult
 from contact_viz.geometry.pointcloud import Cloud, PatchGeometry
 from contact_viz.io.session import BadFrame, Session
 from contact_viz.params import MM_PER_M
@@ -35,12 +36,15 @@ from contact_viz.viz.style import (
     DEPTH_KIND_DRAW_ORDER,
     DEPTH_KIND_STYLES,
     DIAGNOSTIC_STYLES,
+    INSTRUMENT_POSTERIOR_WIDTH_PX,
     KINEMATIC_STYLES,
     LAYER_OVERLAY_OPACITY,
     LAYER_STYLES,
     PATCH_COLOUR_NAME,
     PATCH_STYLES,
     SERIES_STYLES,
+    InstrumentStyle,
+    instrument_style,
 )
 
 __all__ = [
@@ -51,6 +55,7 @@ __all__ = [
     "open_recording",
     "ENTITY_CLOUD_FAR",
     "ENTITY_CONFIG",
+    "ENTITY_CONTACT",
     "ENTITY_CLOUD_NEAR",
     "ENTITY_DEPTH_CAMERA",
     "ENTITY_DEPTH_IMAGE",
@@ -80,6 +85,8 @@ __all__ = [
     "ENTITY_WORLD",
     "FORCE_ENTITIES",
     "FrameView",
+    "InstrumentLayers",
+    "InstrumentView",
     "MODEL_HINT",
     "TIMELINE_FRAME",
     "TIMELINE_TIME",
@@ -97,6 +104,7 @@ __all__ = [
     "log_video_samples",
     "send_known_series",
     "set_frame_time",
+    "tool_entity",
 ]
 
 IMAGE_PLANE_DISTANCE_M = 0.015  # how far from each camera its image is drawn in the 3D view, m
@@ -129,6 +137,18 @@ def _marker_height(code: str, scores) -> float:
 
 
 @dataclass(frozen=True)
+class InstrumentView:
+    """One instrument's part of a readable frame, display-ready (prepared by the debugger)."""
+
+    tool: int  # object id (the primary instrument is logged at the single-instrument paths: InstrumentLayers)
+    patch: PatchResult  # its patch: layer ids, window, distance, signal
+    depth_layers: np.ndarray  # (h, w) uint8 its layer ids on the decimated depth grid
+    depth_window_xyxy: tuple[float, float, float, float] | None  # its patch window on the depth grid, px
+    geometry: PatchGeometry | None  # its patch in 3D (None = no patch)
+    posterior: float | None = None  # its own causal posterior P(contact) (None = no model)
+
+
+@dataclass(frozen=True)
 class FrameView:
     """Display-ready data of one readable frame, prepared by the debugger (see contact_viz.viz.debugger)."""
 
@@ -138,11 +158,10 @@ class FrameView:
     right_rgb: np.ndarray | None  # right image as (H, W, 3) uint8 RGB (raw mode), or None
     depth_u16: np.ndarray  # (h, w) uint16 decimated depth, 1 unit = 1 / depth_units_per_m m, 0 = invalid
     depth_units_per_m: float  # units of depth_u16 per metre
-    depth_layers: np.ndarray  # (h, w) uint8 layer ids on the decimated depth grid
-    depth_window_xyxy: tuple[float, float, float, float] | None  # patch window on the depth grid, px
+    # every instrument in the frame (a frame without any: the frame's patch as the primary instrument's)
+    instruments: Sequence[InstrumentView]
     cloud: Cloud | None  # RGB point cloud (None = not logged)
-    geometry: PatchGeometry | None  # the patch in 3D (None = no patch)
-    posterior: float | None  # causal HMM posterior P(contact) (None = no model)
+    posterior: float | None  # the scene's causal HMM posterior P(contact) (None = no model)
     predicted: bool | None  # posterior >= threshold (None = no model)
     diagnostics: Sequence[Diagnostic] = ()  # checks that fired at this frame
     diagnostic_scores: dict | None = None  # check code -> measured value / threshold (> 1 fires)
@@ -151,6 +170,8 @@ class FrameView:
     left_in_video: bool = False  # the left image goes to its video stream (log_video_samples), not logged here
     right_in_video: bool = False  # the right image goes to its video stream
     notes: Sequence[str] = ()  # other warnings of this frame (e.g. an unreadable right image)
+    contact_tool: int | None = None  # the instrument in contact (with a model) or nearest (without), or None
+    contact_text: str | None = None  # the same in words, for ENTITY_CONTACT (None: not logged)
 
 
 # --------------------------------------------------------------------------------------------
@@ -264,17 +285,19 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     Left column, top: the left image with the layer overlay and the patch box (large; its title
     names the layer colours), and beside it the right image over the depth image with the same
     overlay (each a quarter of the left image's area, so the three images fill their panes with
-    little letterboxing). Below: the 3D scene (RGB cloud, patch points, gap arrow, camera frustums;
-    the depth image's own back-projection is in the scene but hidden until toggled on), seen from
-    the side (EYE_*). Where SGBM depth was computed in two parts, the depth image's coarse part is
-    tinted (:class:`DepthKindLayer`; the depth view's title names the tint unless ``with_depth_kind``
+    little letterboxing); every instrument's layers and box are drawn, each in its own colours
+    (contact_viz.viz.style.instrument_style). Below: the 3D scene (RGB cloud, patch points, gap
+    arrows, camera frustums; the depth image's own back-projection is in the scene but hidden until
+    toggled on), seen from the side (EYE_*). Where SGBM depth was computed in two parts, the depth
+    image's coarse part is tinted (:class:`DepthKindLayer`; the depth view's title names the tint unless ``with_depth_kind``
     is False). Right column: distance, signal, force, contact (truth / posterior / threshold
-    / prediction) and diagnostics, all on the global ``frame`` axis, the text log in a tab beside
-    the diagnostics. Single-series plots have no legend (the view name says what and in which
-    unit); the others have theirs in a corner that the approach phase mostly leaves free.
+    / prediction) and diagnostics, all on the global ``frame`` axis, the text log and the instrument in
+    contact (ENTITY_CONTACT) in tabs beside the diagnostics. The distance, signal and contact plots show
+    every instrument's series (children of their origin: entities.tool_entity), the contact plot the
+    scene's posterior with each instrument's own as a thin line in its colour. The plots' legends (which
+    name the instruments) sit in a corner that the approach phase mostly leaves free.
     """
     linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
-    no_legend = rrb.PlotLegend(visible=False)
     left = rrb.Spatial2DView(name=f"left · {layer_legend()}", origin=ENTITY_LEFT_CAMERA)
     depth_name = f"depth + layers · {PATCH_COLOUR_NAME} box: patch"
     if with_depth_kind:
@@ -284,8 +307,9 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     scene = rrb.Spatial3DView(
         name="3D: cloud, patch points, gap",
         origin=ENTITY_WORLD,
-        contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}", f"- {ENTITY_LEFT_PATCH}", f"- {ENTITY_DEPTH_LAYERS}",
-                  f"- {ENTITY_DEPTH_PATCH}", f"- {ENTITY_DEPTH_KIND}"],
+        # (/**: every instrument's layers and boxes too, under <entity>/tools/<id>)
+        contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}/**", f"- {ENTITY_LEFT_PATCH}/**",
+                  f"- {ENTITY_DEPTH_LAYERS}/**", f"- {ENTITY_DEPTH_PATCH}/**", f"- {ENTITY_DEPTH_KIND}"],
         # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
         overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
         line_grid=rrb.LineGrid3D(visible=False),
@@ -296,14 +320,15 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
         images = rrb.Horizontal(left, rrb.Vertical(right, depth), column_shares=[2, 1])
     else:
         images = rrb.Horizontal(left, depth, column_shares=[1, 1])
-    contact_name = ("contact (0/1): truth, HMM posterior, threshold, prediction" if with_model
-                    else "contact (0/1): ground truth")
+    contact_name = ("contact (0/1): truth, HMM posterior, threshold, prediction · thin: each instrument's posterior"
+                    if with_model else "contact (0/1): ground truth")
     diagnostics_top = SCORE_CLIP + 0.1
     series = [
+        # the legends name the instruments (a session of one has a single entry, "distance (mm)")
         rrb.TimeSeriesView(name="distance (mm)", origin=ENTITY_SERIES_DISTANCE, axis_x=linked,
-                           plot_legend=no_legend),
+                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.RightTop)),
         rrb.TimeSeriesView(name="signal -log10 max(|d|, eps), d in m", origin=ENTITY_SERIES_SIGNAL, axis_x=linked,
-                           plot_legend=no_legend),
+                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
         rrb.TimeSeriesView(name="force (N)", origin=ENTITY_SERIES_FORCE, axis_x=linked,
                            plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
         rrb.TimeSeriesView(name=contact_name, origin=ENTITY_SERIES_CONTACT, axis_x=linked,
@@ -318,6 +343,7 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
                                # 2 series per check: a legend would cover the plot; hover names them, `log` says why
                                plot_legend=rrb.PlotLegend(visible=False)),
             rrb.TextLogView(name="log", origin=ENTITY_LOG),
+            rrb.TextDocumentView(name="instrument in contact", origin=ENTITY_CONTACT),
             *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=ENTITY_SERIES_TIP,
                                   axis_x=linked)] if with_kinematics else []),
             active_tab=0,
@@ -420,10 +446,10 @@ def log_video_samples(rec: rr.RecordingStream, entity: str, samples: Sequence, t
                                                     is_keyframe=[s.is_keyframe for s in samples]))
 
 
-def _box(window: tuple[float, float, float, float], label: str) -> rr.Boxes2D:
+def _box(window: tuple[float, float, float, float], label: str, colour=PATCH_STYLES["window"]) -> rr.Boxes2D:
     x0, y0, x1, y1 = window
     return rr.Boxes2D(mins=[[x0, y0]], sizes=[[x1 - x0, y1 - y0]], labels=[label],
-                      colors=[PATCH_STYLES["window"]], radii=[-BOX_LINE_RADIUS_PX])
+                      colors=[colour], radii=[-BOX_LINE_RADIUS_PX])
 
 
 def _log_series(rec: rr.RecordingStream, entity: str, value: float) -> None:
@@ -450,19 +476,152 @@ def _log_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic],
         rec.log(ENTITY_LOG, rr.TextLog(note, level=rr.TextLogLevel.WARN))
 
 
-def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
-    """Log one readable frame: ``result`` is its FrameResult (frame + patch), ``view`` its display data."""
+class InstrumentLayers:
+    """Every instrument's own entities, frame by frame (entities.py: several instruments).
+
+    The primary instrument (``primary``: the lowest selected object id, 1 without a selection) is logged
+    at the single-instrument paths, any other instrument ``k`` at ``tool_entity(entity, k)``, each in its
+    colours (:func:`contact_viz.viz.style.instrument_style`; instrument 1's are the world's layer classes,
+    the others get an AnnotationContext on their layer entities, static, the first time they appear).
+    An instrument that leaves the frame (or a bad frame) gets its entities cleared and its series broken
+    by a NaN, once: a stale layer never shows.
+
+    The session counts as one of several instruments from the first frame with an instrument other than
+    the primary (or from the start, ``several``: the selection names several); from then on the boxes and
+    gap arrows are labelled with the instrument ("2: 3.1 mm", and "· in contact" / "· nearest" on
+    the frame's ``contact_tool``), the series are named after the instruments, and with a model each
+    instrument's own posterior is logged too (``tool_entity(ENTITY_SERIES_POSTERIOR, k)``, the primary's
+    included; before, it is the scene's). A session of one instrument records exactly what it did
+    before there were several.
+    """
+
+    def __init__(self, primary: int = 1, *, with_model: bool = False, several: bool = False) -> None:
+        self.primary = int(primary)
+        self.with_model = with_model
+        self.several = several
+        self.styled: set[int] = set()  # instruments whose static styles are logged
+        self.shown: set[int] = set()  # instruments whose entities hold data at the current time
+
+    def entity(self, entity: str, tool: int) -> str:
+        """Where instrument ``tool`` logs its ``entity`` (one of TOOL_ENTITIES, or the distance / signal series)."""
+        return entity if tool == self.primary else tool_entity(entity, tool)
+
+    # -- static styles -------------------------------------------------------------------------
+
+    def _series_styles(self, rec: rr.RecordingStream, style: InstrumentStyle) -> None:
+        tool = style.tool
+        if tool == 1 and tool == self.primary and not self.several:
+            return  # log_static's series styles are instrument 1's
+        named = self.several or tool != self.primary
+        for entity, key, colour, name in (
+                (ENTITY_SERIES_DISTANCE, "distance_mm", style.line, f"{style.name} (mm)"),
+                (ENTITY_SERIES_SIGNAL, "signal", style.signal, style.name)):
+            base = SERIES_STYLES[key]
+            rec.log(self.entity(entity, tool), rr.SeriesLines(colors=[colour], widths=[base.width_px],
+                                                              names=[name if named else base.name]), static=True)
+        if self.with_model and self.several:
+            rec.log(tool_entity(ENTITY_SERIES_POSTERIOR, tool),
+                    rr.SeriesLines(colors=[style.line], widths=[INSTRUMENT_POSTERIOR_WIDTH_PX],
+                                   names=[f"{style.name} P(contact)"]), static=True)
+
+    def _style(self, rec: rr.RecordingStream, tool: int) -> None:
+        if tool in self.styled:
+            return
+        self.styled.add(tool)
+        style = instrument_style(tool)
+        if tool != 1:  # (instrument 1's classes are the world's AnnotationContext, LAYER_STYLES)
+            context = rr.AnnotationContext([rr.AnnotationInfo(id=s.class_id, label=s.name, color=s.rgba)
+                                            for s in style.layers])
+            for entity in TOOL_LAYER_ENTITIES:
+                rec.log(self.entity(entity, tool), context, static=True)
+        self._series_styles(rec, style)
+
+    def _become_several(self, rec: rr.RecordingStream) -> None:
+        self.several = True
+        for tool in sorted(self.styled):  # the series named after their instruments, and their posteriors
+            self._series_styles(rec, instrument_style(tool))
+
+    # -- per frame -----------------------------------------------------------------------------
+
+    def label(self, view: InstrumentView, contact_tool: int | None) -> str:
+        """The box and gap-arrow label of ``view``: its distance; with several instruments, which one, and
+        whether it is the frame's instrument in contact (with a model) or nearest (without)."""
+        text = f"{view.patch.distance_m * MM_PER_M:.1f} mm"
+        if not self.several:
+            return text
+        mark = "" if view.tool != contact_tool else " · in contact" if self.with_model else " · nearest"
+        return f"{view.tool}: {text}{mark}"
+
+    def log(self, rec: rr.RecordingStream, views: Sequence[InstrumentView], contact_tool: int | None = None) -> None:
+        """Log the instruments of a readable frame (at the recording's current time); clear those gone."""
+        present = {v.tool for v in views}
+        if not self.several and any(tool != self.primary for tool in present):
+            self._become_several(rec)
+        for view in views:
+            self._style(rec, view.tool)
+            self._log_one(rec, view, self.label(view, contact_tool))
+        for tool in sorted(self.shown - present):
+            self._clear(rec, tool)
+        self.shown = present
+
+    def bad_frame(self, rec: rr.RecordingStream) -> None:
+        """A frame that could not be read: every instrument's entities cleared (log_bad_frame clears the
+        primary's single-instrument paths itself)."""
+        for tool in sorted(self.shown - {self.primary}):
+            self._clear(rec, tool)
+        if self.several and self.with_model and self.primary in self.shown:
+            _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, self.primary), math.nan)
+        self.shown = set()
+
+    def _log_one(self, rec: rr.RecordingStream, view: InstrumentView, label: str) -> None:
+        tool, patch, geometry = view.tool, view.patch, view.geometry
+        style = instrument_style(tool)
+        at = self.entity
+        rec.log(at(ENTITY_LEFT_LAYERS, tool), rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
+        rec.log(at(ENTITY_DEPTH_LAYERS, tool), rr.SegmentationImage(view.depth_layers,
+                                                                    opacity=LAYER_OVERLAY_OPACITY))
+        if patch.window_xyxy is not None and geometry is not None:
+            rec.log(at(ENTITY_LEFT_PATCH, tool), _box(patch.window_xyxy, label, style.window))
+            if view.depth_window_xyxy is not None:
+                rec.log(at(ENTITY_DEPTH_PATCH, tool), _box(view.depth_window_xyxy, label, style.window))
+            radii = [geometry.point_radius_m]
+            rec.log(at(ENTITY_PATCH_TISSUE, tool), rr.Points3D(geometry.tissue_points_m,
+                                                               colors=[style.tissue_points], radii=radii))
+            rec.log(at(ENTITY_PATCH_TOOL, tool), rr.Points3D(geometry.tool_points_m, colors=[style.tool_points],
+                                                             radii=radii))
+            rec.log(at(ENTITY_PATCH_GAP, tool), rr.Arrows3D(origins=[geometry.gap_origin_m],
+                                                            vectors=[geometry.gap_vector_m], colors=[style.gap],
+                                                            labels=[label], radii=[GAP_ARROW_RADIUS_M]))
+        else:
+            for entity in PATCH_ENTITIES:
+                rec.log(at(entity, tool), rr.Clear(recursive=False))
+        _log_series(rec, at(ENTITY_SERIES_DISTANCE, tool), patch.distance_m * MM_PER_M)
+        _log_series(rec, at(ENTITY_SERIES_SIGNAL, tool), patch.signal)
+        if self.several and view.posterior is not None:
+            _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, tool), view.posterior)
+
+    def _clear(self, rec: rr.RecordingStream, tool: int) -> None:
+        for entity in TOOL_ENTITIES:
+            rec.log(self.entity(entity, tool), rr.Clear(recursive=False))
+        for entity in (ENTITY_SERIES_DISTANCE, ENTITY_SERIES_SIGNAL):
+            _log_series(rec, self.entity(entity, tool), math.nan)
+        if self.several and self.with_model:
+            _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, tool), math.nan)
+
+
+def log_frame(rec: rr.RecordingStream, result, view: FrameView, instruments: InstrumentLayers) -> None:
+    """Log one readable frame: ``result`` is its FrameResult (frame + patch), ``view`` its display data and
+    ``instruments`` the per-instrument entities of the run (one InstrumentLayers for all its frames)."""
     frame, patch = result.frame, result.patch
     if patch is None:
         raise ValueError(f"log_frame: frame {frame.index} has no patch result (a bad frame); use log_bad_frame")
     set_frame_time(rec, frame.index, frame.timestamp_s)
 
     _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb, view.left_in_video)
-    rec.log(ENTITY_LEFT_LAYERS, rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
     if view.has_right:
         _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb, view.right_in_video)
     rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP))
-    rec.log(ENTITY_DEPTH_LAYERS, rr.SegmentationImage(view.depth_layers, opacity=LAYER_OVERLAY_OPACITY))
+    instruments.log(rec, view.instruments, view.contact_tool)
 
     if view.cloud is not None:
         cloud = view.cloud
@@ -472,28 +631,10 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView) -> None:
             rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
                                                   radii=[cloud.far_radius_m]))
 
-    geometry = view.geometry
-    if patch.window_xyxy is not None and geometry is not None:
-        label = f"{patch.distance_m * MM_PER_M:.1f} mm"
-        rec.log(ENTITY_LEFT_PATCH, _box(patch.window_xyxy, label))
-        if view.depth_window_xyxy is not None:
-            rec.log(ENTITY_DEPTH_PATCH, _box(view.depth_window_xyxy, label))
-        radii = [geometry.point_radius_m]
-        rec.log(ENTITY_PATCH_TISSUE, rr.Points3D(geometry.tissue_points_m, colors=[PATCH_STYLES["tissue_points"]],
-                                                 radii=radii))
-        rec.log(ENTITY_PATCH_TOOL, rr.Points3D(geometry.tool_points_m, colors=[PATCH_STYLES["tool_points"]],
-                                               radii=radii))
-        rec.log(ENTITY_PATCH_GAP, rr.Arrows3D(origins=[geometry.gap_origin_m], vectors=[geometry.gap_vector_m],
-                                              colors=[PATCH_STYLES["gap"]], labels=[label],
-                                              radii=[GAP_ARROW_RADIUS_M]))
-    else:
-        for entity in PATCH_ENTITIES:
-            rec.log(entity, rr.Clear(recursive=False))
-
-    _log_series(rec, ENTITY_SERIES_DISTANCE, patch.distance_m * MM_PER_M)
-    _log_series(rec, ENTITY_SERIES_SIGNAL, patch.signal)
     _log_series(rec, ENTITY_SERIES_INVALID_DEPTH, patch.invalid_depth_fraction)
     _log_contact(rec, view.posterior, view.predicted)
+    if view.contact_text is not None:
+        rec.log(ENTITY_CONTACT, rr.TextDocument(view.contact_text))
     _log_diagnostics(rec, view.diagnostics, view.notes, view.diagnostic_scores)
     _log_evidence(rec, view.evidence if any(d.code in EVIDENCE_CHECKS for d in view.diagnostics) else None,
                   frame.tool_mask.shape)
@@ -618,8 +759,11 @@ def log_bad_frame(
     posterior: float | None = None,
     predicted: bool | None = None,
     diagnostics: Sequence[Diagnostic] = (),
+    instruments: InstrumentLayers | None = None,
+    contact_text: str | None = None,
 ) -> None:
-    """Log a frame that could not be read: a warning naming the file, cleared images, gaps in the series.
+    """Log a frame that could not be read: a warning naming the file, cleared images (every instrument's
+    layers, with ``instruments``), gaps in the series.
 
     The posterior (a prediction step, with a model) is still logged: the filter runs on.
     """
@@ -630,7 +774,11 @@ def log_bad_frame(
         rec.log(entity, rr.Clear(recursive=False))
     for entity in (ENTITY_SERIES_DISTANCE, ENTITY_SERIES_SIGNAL, ENTITY_SERIES_INVALID_DEPTH):
         _log_series(rec, entity, math.nan)
+    if instruments is not None:
+        instruments.bad_frame(rec)
     _log_contact(rec, posterior, predicted)
+    if contact_text is not None:
+        rec.log(ENTITY_CONTACT, rr.TextDocument(contact_text))
     _log_diagnostics(rec, diagnostics, ())
 
 

@@ -24,6 +24,8 @@ __all__ = [
     "DEPTH_KIND_DRAW_ORDER",
     "DEPTH_KIND_STYLES",
     "DIAGNOSTIC_STYLES",
+    "INSTRUMENT_COLOURS",
+    "InstrumentStyle",
     "LAYER_OVERLAY_OPACITY",
     "LAYER_STYLES",
     "PATCH_COLOUR_NAME",
@@ -31,6 +33,7 @@ __all__ = [
     "SERIES_STYLES",
     "LayerStyle",
     "SeriesStyle",
+    "instrument_style",
     "layer_style",
     "to_float_rgba",
     "with_alpha",
@@ -162,6 +165,8 @@ DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
     "mask_dropout": SeriesStyle("mask dropout", SKY_BLUE, 6.0),
     "extra_blob": SeriesStyle("extra mask blob", BLUE, 6.0),
     "mask_area_jump": SeriesStyle("mask area jump", ORANGE, 6.0),
+    "id_swap": SeriesStyle("instrument ids swapped", YELLOW, 6.0),
+    "tools_merged": SeriesStyle("instruments merged", SKY_BLUE, 6.0),
     "mask_image_edges": SeriesStyle("mask off image edges", YELLOW, 6.0),
     "mask_on_tissue": SeriesStyle("mask rim on tissue depth", BLUISH_GREEN, 6.0),
     "tool_depth_outside": SeriesStyle("tool depth outside mask", REDDISH_PURPLE, 6.0),
@@ -174,6 +179,66 @@ DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
     "force_lag": SeriesStyle("force out of sync", ORANGE, 6.0),
     "frame_times": SeriesStyle("frame time gaps", GREY, 6.0),
 }
+
+
+# Several instruments (SAM2 object ids): each has a colour of its own, the same on every frame, picked by object
+# id. Instrument 1 keeps the single-instrument colours above (blue interior, white box and gap arrow, orange
+# distance line); instrument k >= 2 is drawn in INSTRUMENT_COLOURS[(k - 2) % 5]: its interior, tool edge, tool
+# points, box, gap arrow and series. The excluded ring and the exterior band keep their yellow and green on every
+# instrument (what a class is reads the same everywhere; hovering names the instrument). Bright hues unlike
+# instrument 1's colours and the ring / band, readable on red tissue, the grey tool and the dark plot background.
+LIME: RGBA = (150, 230, 40, 255)
+VIOLET: RGBA = (175, 125, 255, 255)
+MAGENTA: RGBA = (255, 85, 215, 255)
+CYAN: RGBA = (0, 225, 225, 255)
+SALMON: RGBA = (255, 130, 100, 255)
+INSTRUMENT_COLOURS: tuple[tuple[RGBA, str], ...] = (
+    (LIME, "lime"), (VIOLET, "violet"), (MAGENTA, "magenta"), (CYAN, "cyan"), (SALMON, "salmon"),
+)
+INSTRUMENT_POSTERIOR_WIDTH_PX = 1.5  # an instrument's own posterior line, over the scene's (SERIES_STYLES)
+
+
+@dataclass(frozen=True)
+class InstrumentStyle:
+    """How one instrument (object id) is drawn, on every frame."""
+
+    tool: int  # object id
+    colour_name: str  # its colour in words (instrument 1: its interior's)
+    layers: tuple[LayerStyle, ...]  # its layer classes (LAYER_STYLES' ids; instrument 1: LAYER_STYLES itself)
+    window: RGBA  # the patch box (2D)
+    tissue_points: RGBA  # band pixels of the patch (3D)
+    tool_points: RGBA  # interior pixels behind the tool depth (3D)
+    gap: RGBA  # the gap arrow (3D)
+    line: RGBA  # its distance line and its own posterior line
+    signal: RGBA  # its signal line
+
+    @property
+    def name(self) -> str:
+        return f"instrument {self.tool}"
+
+
+def instrument_style(tool: int) -> InstrumentStyle:
+    """The style of instrument ``tool`` (object id >= 1): instrument 1 in the single-instrument colours,
+    the others in INSTRUMENT_COLOURS by id (the same id gets the same colour in every frame and session)."""
+    tool = int(tool)
+    if tool < 1:
+        raise ValueError(f"tool: expected an object id >= 1 (0 is background), got {tool}")
+    if tool == 1:
+        return InstrumentStyle(1, "blue", LAYER_STYLES, PATCH_STYLES["window"], PATCH_STYLES["tissue_points"],
+                               PATCH_STYLES["tool_points"], PATCH_STYLES["gap"], SERIES_STYLES["distance_mm"].rgba,
+                               SERIES_STYLES["signal"].rgba)
+    rgba, colour_name = INSTRUMENT_COLOURS[(tool - 2) % len(INSTRUMENT_COLOURS)]
+    light = _lighter(rgba)
+    own = {LAYER_INTERIOR: with_alpha(rgba, INTERIOR_ALPHA), LAYER_TOOL_EDGE: with_alpha(light, THIN_LAYER_ALPHA)}
+    layers = tuple(LayerStyle(s.class_id, s.name if s.class_id == LAYER_BACKGROUND else f"instrument {tool}: {s.name}",
+                              own.get(s.class_id, s.rgba),
+                              colour_name if s.class_id in own else s.colour_name) for s in LAYER_STYLES)
+    return InstrumentStyle(tool, colour_name, layers, rgba, PATCH_STYLES["tissue_points"], light, rgba, rgba, rgba)
+
+
+def _lighter(rgba: RGBA, towards_white: float = 0.45) -> RGBA:
+    """``rgba`` mixed with white (the tool edge and tool points of an instrument, lighter than its interior)."""
+    return tuple(int(round(c + (255 - c) * towards_white)) for c in rgba[:3]) + (rgba[3],)  # type: ignore[return-value]
 
 
 def to_float_rgba(rgba: RGBA) -> tuple[float, float, float, float]:
