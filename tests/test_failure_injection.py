@@ -1,9 +1,11 @@
 """Failure injection: each of the ten failures, put into small synthetic sessions of every phantom while
 the tool approaches and while it is in contact, is flagged at the injected frames by the check that
-names it; the clean sessions raise (almost) no flags.
+names it; the clean sessions raise (almost) no flags. The two failures only masks of several
+instruments have (an id swap, two instruments merged into one id) likewise, in two-instrument sessions.
 
-Sessions: `contact-viz synth` at 320x180, 84 frames (one whole contact), seed 7 (the thresholds were chosen on seed 0).
-Severity and timing vary per phantom (contact_viz.synth.fault_study.SEVERITY, plan_windows).
+Sessions: `contact-viz synth` at 320x180, 84 frames (one whole contact), seed 7 (the thresholds were chosen on seed 0);
+two-instrument sessions (`--tools 2`) of 100 frames. Severity and timing vary per phantom
+(contact_viz.synth.fault_study.SEVERITY, plan_windows, plan_pair_windows).
 """
 
 from __future__ import annotations
@@ -11,11 +13,12 @@ from __future__ import annotations
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
 import pytest
 
 from contact_viz.synth import PHANTOMS
 from contact_viz.synth.fault_study import detected, flagged_frames, inject_and_check_job, make_session_job
-from contact_viz.synth.faults import FAULT_KINDS, inject_fault, read_truth_phases
+from contact_viz.synth.faults import FAULT_KINDS, MULTI_FAULT_KINDS, inject_fault, read_mask_ids, read_truth_phases
 
 SEED = 7
 FRAMES = 84
@@ -32,7 +35,11 @@ NAMED_BY = {
     "depth_misregistration": {"mask_on_tissue", "tool_depth_outside", "stereo_residual"},
     "force_offset": {"force_lag"},
     "frozen_depth": {"frozen_depth"},
+    "id_swap": {"id_swap"},
+    "tools_merged": {"tools_merged"},
 }
+TWO_TOOL_PHANTOMS = ("cup", "glove")
+TWO_TOOL_FRAMES = 100
 
 
 def _pool():
@@ -113,3 +120,69 @@ def test_injection_changes_only_the_injected_files(sessions, tmp_path):
     assert {str(c) for c in changed} == {f"depth/{stems[20]}.npy", f"depth/{stems[21]}.npy"}
     assert fault.frames == (20, 21)
     assert len(read_truth_phases(src)) == FRAMES
+
+
+@pytest.fixture(scope="module")
+def two_tool_sessions(tmp_path_factory):
+    root = tmp_path_factory.mktemp("two_tools")
+    with _pool() as pool:
+        jobs = [(root / f"{p}_{SEED}_two", p, SEED, TWO_TOOL_FRAMES, 320, 180, 2) for p in TWO_TOOL_PHANTOMS]
+        return dict(zip(TWO_TOOL_PHANTOMS, pool.map(make_session_job, jobs)))
+
+
+@pytest.fixture(scope="module")
+def multi_outcomes(two_tool_sessions, tmp_path_factory):
+    work = tmp_path_factory.mktemp("injected_two")
+    jobs = [(two_tool_sessions[p], work, kind, 1000 * (k + 20) + 10 * i + seed) for i, p in enumerate(TWO_TOOL_PHANTOMS)
+            for k, kind in enumerate(MULTI_FAULT_KINDS) for seed in (0, 1)]
+    with _pool() as pool:
+        return list(pool.map(inject_and_check_job, jobs))
+
+
+@pytest.mark.parametrize("kind", MULTI_FAULT_KINDS)
+def test_an_id_swap_or_a_merge_is_flagged_on_every_injected_frame_by_its_check(multi_outcomes, kind):
+    mine = [o for o in multi_outcomes if o.kind == kind]
+    assert len(mine) == 2 * len(TWO_TOOL_PHANTOMS)
+    (code,) = NAMED_BY[kind]
+    for o in mine:
+        named = {i for a, b in o.report.fired.get(code, []) for i in range(a, b + 1)}
+        for phase in ("approach", "contact"):
+            assert len(o.injected[phase]) >= 2, (o.session, phase)
+            assert set(o.injected[phase]) <= named, (f"{kind} in {o.session} ({phase}): {code} on "
+                                                     f"{sorted(named)}, injected {o.injected[phase]}")
+            assert detected(o, phase)
+        # it names the instruments: both ids for a swap, the one that took in the other for a merge
+        tools = set(o.report.tool_fired[code])
+        assert tools == ({1, 2} if kind == "id_swap" else {int(o.severity)}), (o.session, tools)
+        # and fires nowhere else (after the ids are restored / the instruments apart again, it stops)
+        assert named <= set(o.injected["approach"]) | set(o.injected["contact"]), (o.session, sorted(named))
+
+
+def test_injected_ids_are_what_the_segmenter_would_write(two_tool_sessions, sessions, tmp_path):
+    src = two_tool_sessions["cup"]
+    stems = sorted(p.stem for p in (src / "masks").iterdir())
+    frame = next(i for i, stem in enumerate(stems)
+                 if {1, 2} <= set(read_mask_ids(src / "masks" / f"{stem}.png")[0].ravel()))
+    before, _ = read_mask_ids(src / "masks" / f"{stems[frame]}.png")
+    inject_fault(src, tmp_path / "swap", "id_swap", [frame])
+    swapped, image = read_mask_ids(tmp_path / "swap" / "masks" / f"{stems[frame]}.png")
+    assert image.mode == "P" and np.array_equal(swapped == 1, before == 2) and np.array_equal(swapped == 2, before == 1)
+    fault = inject_fault(src, tmp_path / "merge", "tools_merged", [frame], seed=3)
+    merged, _ = read_mask_ids(tmp_path / "merge" / "masks" / f"{stems[frame]}.png")
+    keep = int(fault.severity)
+    assert np.array_equal(merged == keep, before > 0) and not (merged == 3 - keep).any()
+    with pytest.raises(ValueError, match="instruments 1 and 2"):
+        inject_fault(sessions["cup"], tmp_path / "one", "id_swap", [20])
+
+
+def test_clean_two_instrument_sessions_raise_few_flags_and_no_swap_or_merge(two_tool_sessions):
+    from contact_viz.pipeline.check import check_session
+
+    total = flagged = 0
+    for session in two_tool_sessions.values():
+        report = check_session(session)
+        assert report.instruments == (1, 2)
+        assert not {"id_swap", "tools_merged"} & set(report.fired), report.fired
+        total += report.n_frames
+        flagged += len(flagged_frames(report))
+    assert flagged < 0.03 * total, flagged

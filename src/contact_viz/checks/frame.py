@@ -6,12 +6,17 @@ calibration of one rectified frame and returns :class:`FrameMeasures`, the quant
 
 * mask blobs: the main connected component and the largest extra one that is not a fragment of
   the tool cut by the image border (it does not touch the border, or lies far from the main blob);
-* edge support: share of the mask contour (off the image border) that lies on an image edge;
+* edge support: share of the mask contour (off the image border) that lies on an image edge (a grey
+  gradient of image_edge_grey, or in dim light edge_texture_factor x the tissue's texture around);
 * depth against the mask: with ``ref`` = the tool depth nearby (mean valid interior depth in a
   window, carried outwards to every pixel from its nearest interior pixel),
-  ``inside_far_fraction`` = share of the mask's inner rim whose depth lies behind ``ref`` (the mask
-  covers tissue, or the depth is shifted), ``outside_tool_fraction`` = share of a ring just
-  outside the mask whose depth equals ``ref`` (the tool's depth bleeds onto tissue, or is shifted);
+  ``inside_far_fraction`` = share of the mask's inner rim whose depth lies behind the tool's surface
+  continued to it (the plane fitted to the window's interior depth, its slope bounded by what a
+  shaft can have: a receding shaft deepens along its axis, a round one towards its silhouette) by
+  more than far_depth_m / far_depth_rel and than a round shaft's silhouette relief there (one
+  radius seen straight on, up to 1.4 radii off the optical axis) (the mask covers tissue, or the
+  depth is shifted), ``outside_tool_fraction`` = share of a ring just outside the mask whose depth
+  equals ``ref`` (the tool's depth bleeds onto tissue, or is shifted);
 * ``hole_fraction``: invalid depth on the tool and in the band around it (two shaft widths);
 * ``beside_valid_fraction``: valid depth in the band just outside the mask (out to the outer end of
   that ring): where it is low the depth source failed beside the tool (and the depth-against-mask
@@ -22,7 +27,12 @@ calibration of one rectified frame and returns :class:`FrameMeasures`, the quant
 * ``residual_ratio``: photometric residual of the right image warped into the left view by the
   depth's disparity fx B / Z near the tool, over the residual at a disparity 15% off (the better
   of +- 15%): well below 1 when the depth explains the stereo pair, near or above 1 when not;
-* a digest of the depth and a grey thumbnail, for frozen-depth and image-change tests.
+* a digest of the depth and a grey thumbnail, for frozen-depth and image-change tests;
+* where the mask is (centroid, coverage of a coarse grid), to tell instruments apart between frames.
+
+:func:`measure_tools` measures every instrument (object id) of a frame on its own: the other
+instruments are no tissue (out of its rings, bands and residual region), no contour of it, and a
+piece of it seen beyond one of them is no extra blob.
 
 Everything runs on the tool's bounding box padded by ``pad_frac`` x width, and at a reduced
 resolution on large frames: every n-th pixel of the mask and the depth (nearest sampling: no depth
@@ -43,13 +53,16 @@ import numpy as np
 
 from contact_viz.checks.params import DiagnosticParams
 
-__all__ = ["FrameEvidence", "FrameMeasures", "analysis_step", "measure_frame", "shrink_grey", "THUMB_SIZE"]
+__all__ = ["COVER_SIZE", "FrameEvidence", "FrameMeasures", "ToolMeasures", "analysis_step", "measure_frame",
+           "measure_tools", "merge_evidence", "shrink_grey", "THUMB_SIZE"]
 
 THUMB_SIZE = (32, 18)  # (width, height) of the grey thumbnail kept per frame, px
 RESIDUAL_DELTA = 0.15  # the alternative disparities are (1 +- this) x the depth's, fraction
 RESIDUAL_BOX = 5  # side of the box filter over the absolute residual, px
 SOBEL_NORM = 8.0  # Sobel 3x3 output / this = grey levels per px
 RIM_MIN_VALID = 0.5  # inside_far_fraction is measured where at least this share of the rim has valid depth, 0-1
+COVER_SIZE = (64, 36)  # (width, height) of the coarse coverage grid of a mask kept per frame and instrument, cells
+OTHERS_MARGIN = 2.0  # pixels this close to another instrument (analysis px) are neither tissue nor contour, px
 
 
 @dataclass(frozen=True)
@@ -89,6 +102,23 @@ class FrameMeasures:
     depth_digest: bytes  # hash of the depth map's bytes
     thumb: np.ndarray = field(repr=False)  # (18, 32) float32 grey thumbnail of the left image, 0-255 (empty if none)
     evidence: FrameEvidence | None = field(default=None, repr=False)
+    # where the mask is, for telling instruments apart between frames (id swaps, merges): its centroid, px, and
+    # the share of each cell of a COVER_SIZE grid over the image that it covers, (36, 64) float32 0-1 (None = empty)
+    centroid_xy: tuple[float, float] | None = field(default=None, kw_only=True)
+    coverage: np.ndarray | None = field(default=None, repr=False, kw_only=True)
+
+
+@dataclass(frozen=True)
+class ToolMeasures:
+    """What :func:`measure_tools` measured on one frame: each instrument's :class:`FrameMeasures` (the
+    instruments present, by object id, ascending) and what belongs to the frame (depth digest, thumbnail,
+    the instruments' total mask area)."""
+
+    tools: dict[int, FrameMeasures]  # object id -> its measures (only ids with mask pixels)
+    depth_digest: bytes  # hash of the depth map's bytes
+    thumb: np.ndarray = field(repr=False)  # (18, 32) float32 grey thumbnail of the left image (empty if none)
+    tool_area_px: int = 0  # mask pixels of every instrument measured, px
+    evidence: FrameEvidence | None = field(default=None, repr=False)  # every instrument's, one picture
 
 
 DIGEST_STRIDE = 3  # the depth digest hashes every 3rd row and column of the analysed depth (a repeated map matches,
@@ -123,10 +153,12 @@ def _thumb(grey: np.ndarray | None) -> np.ndarray:
     return cv2.resize(np.asarray(grey), THUMB_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
-def _blobs(mask: np.ndarray, gap_px: float) -> tuple[int, tuple[float, float] | None]:
+def _blobs(mask: np.ndarray, gap_px: float, others: np.ndarray | None = None) -> tuple[int, tuple[float, float] | None]:
     """(area, centroid) of the largest extra blob that is not a fragment of the tool, or (0, None).
 
-    Found on the mask sampled every BLOB_STEP px (areas and positions scaled back)."""
+    Found on the mask sampled every BLOB_STEP px (areas and positions scaled back). ``others``: the other
+    instruments' pixels (same size as ``mask``); a blob joined to the main one by them is the tool seen on
+    both sides of an instrument that crosses in front of it, no extra blob."""
     step = BLOB_STEP
     small = np.ascontiguousarray(mask[::step, ::step]).view(np.uint8)
     n, labels, stats, centroids = cv2.connectedComponentsWithStats(small, connectivity=8)
@@ -136,18 +168,41 @@ def _blobs(mask: np.ndarray, gap_px: float) -> tuple[int, tuple[float, float] | 
     areas = stats[1:, cv2.CC_STAT_AREA]
     main = 1 + int(np.argmax(areas))
     height, width = small.shape
+    bridged = None
+    if others is not None:
+        near = cv2.dilate(np.ascontiguousarray(others[::step, ::step]).view(np.uint8), np.ones((3, 3), np.uint8))
+        if near.any():
+            _, joined = cv2.connectedComponents(small | near, connectivity=8)
+            bridged = joined
+            main_joined = joined[labels == main][0]
     gap = None
     best, best_xy = 0, None
+    mx, my, mw, mh, _ = stats[main]
+    # how far the main blob reaches into the image from the border it touches (inf: it touches none)
+    reach = min([mh for touching in (my == 0, my + mh == height) if touching]
+                + [mw for touching in (mx == 0, mx + mw == width) if touching], default=math.inf)
+    border_gap = None
     for k in range(1, n):
         if k == main:
             continue
         x, y, w, h, area = stats[k]
         if area <= best:
             continue
+        if bridged is not None and bridged[labels == k][0] == main_joined:
+            continue  # the same tool on the far side of another instrument
         at_border = x == 0 or y == 0 or x + w == width or y + h == height
         if gap is None:
             gap = cv2.distanceTransform((labels != main).view(np.uint8), cv2.DIST_L2, 3)
-        far = float(gap[labels == k].min()) > gap_px
+        limit = gap_px
+        if at_border and math.isfinite(reach):
+            # a tool tip just entering the view (reaching in no more than twice its width) shows its parts at the
+            # border (its jaws) up to about its own width apart
+            if border_gap is None:
+                inside = cv2.distanceTransform((labels == main).view(np.uint8), cv2.DIST_L2, 3)
+                diameter = 2.0 * float(inside.max())
+                border_gap = max(gap_px, diameter) if reach <= 2.0 * diameter else gap_px
+            limit = border_gap
+        far = float(gap[labels == k].min()) > limit
         if far or not at_border:
             if far or float(gap[labels == k].min()) > 1.5:  # touching fragments are one blob really
                 best, best_xy = int(area), (float(centroids[k][0]) * step, float(centroids[k][1]) * step)
@@ -164,34 +219,52 @@ def measure_frame(
     params: DiagnosticParams = DiagnosticParams(),
     *,
     evidence: bool = False,
+    others: np.ndarray | None = None,
 ) -> FrameMeasures:
     """The diagnostics' measurements of one frame (see the module docstring).
 
     tool_mask (H, W) bool; depth_m (H, W) float, m, invalid where not finite or <= 0; fx_px of the
     full image; left_grey / right_grey the grey images shrunk to the analysis size,
     ``shrink_grey(image, analysis_step(W, params))`` (the full (H, W) images when the step is 1), uint8
-    or float, or None (then the image checks are NaN).
+    or float, or None (then the image checks are NaN). ``others`` (H, W) bool: other instruments' pixels
+    (:func:`measure_tools`): they and a margin of OTHERS_MARGIN analysis px around them are no tissue (left
+    out of the rings, the band of the holes, the residual's region) and no mask contour of this tool.
     """
     full = np.asarray(tool_mask, dtype=bool)
     step = analysis_step(full.shape[1], params)
-    digest = _digest(depth_m[::step, ::step])
-    thumb = _thumb(left_grey)
     area = int(np.count_nonzero(full))
+    touches = bool(area and (full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any()))
+    others_a = None if others is None else np.ascontiguousarray(np.asarray(others, dtype=bool)[::step, ::step])
+    return _measure(area, touches, np.ascontiguousarray(full[::step, ::step]), step, depth_m, left_grey, right_grey,
+                    fx_px, baseline_m, params, evidence, others_a, _digest(depth_m[::step, ::step]),
+                    _thumb(left_grey))
+
+
+def _coverage(mask: np.ndarray) -> np.ndarray:
+    """The share of each cell of a COVER_SIZE grid that ``mask`` covers, (36, 64) float32."""
+    return cv2.resize(mask.view(np.uint8).astype(np.float32), COVER_SIZE, interpolation=cv2.INTER_AREA)
+
+
+def _measure(area: int, touches: bool, mask: np.ndarray, step: int, depth_m, left_grey, right_grey, fx_px, baseline_m,
+             params, evidence, others_a, digest, thumb) -> FrameMeasures:
+    """measure_frame of a mask given as its full-image area, whether it touches the image border and its pixels
+    at the analysis resolution (every ``step``-th); ``others_a``: the other instruments there, or None."""
     nan = math.nan
     if area == 0:
         return FrameMeasures(0, False, 0, None, nan, nan, nan, nan, 0.0, nan, nan, nan, digest, thumb)
-    touches = bool(full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any())
-    mask = np.ascontiguousarray(full[::step, ::step])
     depth_m = depth_m[::step, ::step]
     fx_px = fx_px / step
     height, width = mask.shape
+    principal = ((width - 1) / 2.0, (height - 1) / 2.0)  # the view rays' angles are taken from the image centre
     for name, grey in (("left_grey", left_grey), ("right_grey", right_grey)):
         if grey is not None and np.shape(grey)[:2] != mask.shape:
             raise ValueError(f"measure_frame: {name} must be {height}x{width} px (the image shrunk {step} times), "
                              f"got {np.shape(grey)}")
     if not mask.any():  # a sliver the sampling misses: nothing to measure at this resolution
         return FrameMeasures(area, touches, 0, None, nan, nan, nan, nan, 0.0, nan, nan, nan, digest, thumb)
-    extra_px, extra_xy = _blobs(mask, params.blob_gap_frac * width)
+    ys, xs = np.nonzero(mask)
+    where = dict(centroid_xy=(float(xs.mean()) * step, float(ys.mean()) * step), coverage=_coverage(mask))
+    extra_px, extra_xy = _blobs(mask, params.blob_gap_frac * width, others_a)
     extra_px *= step * step
     extra_xy = None if extra_xy is None else (extra_xy[0] * step, extra_xy[1] * step)
 
@@ -207,6 +280,12 @@ def measure_frame(
     # pixels away from the image border (a contour there is the frame's edge, not the tool's)
     off = np.zeros_like(m)
     off[max(2 - y0, 0):max(min(height - 2 - y0, m.shape[0]), 0), max(2 - x0, 0):max(min(width - 2 - x0, m.shape[1]), 0)] = True
+    near_others = None
+    if others_a is not None:
+        o = np.ascontiguousarray(others_a[y0:y1, x0:x1])
+        if o.any():
+            near_others = cv2.distanceTransform((~o).view(np.uint8), cv2.DIST_L2, 5) <= OTHERS_MARGIN
+            off &= ~near_others  # another instrument is no tissue, and its edge is no edge of this tool
 
     # inside distances (the image border counts as background: every disc lies inside the image)
     dt_in = cv2.distanceTransform(cv2.copyMakeBorder(m8, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0), cv2.DIST_L2,
@@ -229,6 +308,8 @@ def measure_frame(
 
     # holes on the tool and in the band around it
     region = dt_out <= 2.0 * shaft_px
+    if near_others is not None:
+        region &= ~near_others
     hole_fraction = float(1.0 - valid[region].mean())
 
     # depth against the mask: the nearby tool depth, carried outwards
@@ -254,8 +335,10 @@ def measure_frame(
         rim_all = m & (dt_in <= max(lo, 2.5) + 1) & off
         rim = rim_all & valid
         if rim.any() and rim.sum() >= RIM_MIN_VALID * rim_all.sum():
-            ref = lut[labels[rim]]
-            far = z0[rim] - ref > np.maximum(params.far_depth_m, params.far_depth_rel * ref)
+            ref = _surface_at(rim, labels, source, interior, z0, k, m, fx_px, diameter_m / 2, radius)
+            ry, rx = np.nonzero(rim)
+            relief = _silhouette_relief(rx + x0, ry + y0, fx_px, principal, diameter_m / 2, dt_in[rim], radius)
+            far = z0[rim] - ref > np.maximum(np.maximum(params.far_depth_m, params.far_depth_rel * ref), relief)
             inside_far = float(far.mean())
 
     # mask contour against image edges
@@ -267,9 +350,11 @@ def measure_frame(
         # smoothed once against noise: a 3x3 Gaussian at full size; shrinking's pixel averaging did it otherwise
         grey = cv2.GaussianBlur(left_c, (3, 3), 0) if step == 1 else left_c
         mag = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3))
+        edge_grey = _edge_threshold(mag / SOBEL_NORM, (dt_out > hi) & (dt_out <= max(2.0 * shaft_px, 2.0 * hi)) & off,
+                                    params)
         mag = cv2.dilate(mag, np.ones((3, 3), np.uint8)) / SOBEL_NORM
         if contour.any():
-            edge_support = float((mag[contour] >= params.image_edge_grey).mean())
+            edge_support = float((mag[contour] >= edge_grey).mean())
 
     # stereo photometric residual near the tool
     residual_ratio = residual_grey = nan
@@ -277,6 +362,8 @@ def measure_frame(
     near = None
     if left_c is not None and right_grey is not None and baseline_m > 0:
         near = (dt_out <= max(hi if source.any() else 3.5, 3.5) * 2) & valid
+        if near_others is not None:
+            near &= ~near_others
         if near.any():
             right = np.asarray(right_grey)
             disparity = np.where(valid, fx_px * baseline_m / np.where(valid, z, 1), 0).astype(np.float32)
@@ -299,7 +386,7 @@ def measure_frame(
     ev = None
     if evidence:
         cys, cxs = np.nonzero(contour)
-        on_edge = (mag[cys, cxs] >= params.image_edge_grey) if mag is not None else np.zeros(cys.size, bool)
+        on_edge = (mag[cys, cxs] >= edge_grey) if mag is not None else np.zeros(cys.size, bool)
         res_u8 = (np.zeros(m.shape, np.uint8) if residual_img is None
                   else np.clip(residual_img, 0, 255).astype(np.uint8))
         ev = FrameEvidence((x0, y0, x1 - x0, y1 - y0), res_u8,
@@ -308,4 +395,168 @@ def measure_frame(
                            None if left_grey is None else np.asarray(left_grey), step)
     return FrameMeasures(area, touches, extra_px, extra_xy, edge_support, inside_far, outside_tool, hole_fraction,
                          shaft_px * step, width_ratio, residual_ratio, residual_grey, digest, thumb, ev,
-                         beside_valid_fraction=beside_valid)
+                         beside_valid_fraction=beside_valid, **where)
+
+
+EDGE_TEXTURE_MIN_PX = 20  # the tissue's texture is measured on at least this many pixels (else the fixed threshold)
+
+
+def _edge_threshold(gradient: np.ndarray, band: np.ndarray, params: DiagnosticParams) -> float:
+    """The gradient (grey levels / px) from which a mask contour pixel lies on an image edge: image_edge_grey,
+    or less where the light is dim: edge_texture_factor x the tissue's median gradient in ``band`` (around the
+    tool), at least min_image_edge_grey. Image gradients scale with the light, the tissue's texture and the
+    tool's silhouette alike: a shaft that recedes from the camera (lying along tissue that tilts away) turns
+    its surface from the endoscope's light and shows a dim, low-contrast silhouette that is still an edge
+    several times the texture around it."""
+    if np.count_nonzero(band) < EDGE_TEXTURE_MIN_PX:
+        return params.image_edge_grey
+    texture = float(np.median(gradient[band]))
+    return float(min(params.image_edge_grey, max(params.min_image_edge_grey, params.edge_texture_factor * texture)))
+
+
+SILHOUETTE_SLACK_PX = 1.5  # rim pixels this close to the mask's edge are taken at the silhouette (the depth map's
+# silhouette may sit a pixel off the mask's), px
+
+
+def _silhouette_relief(xs: np.ndarray, ys: np.ndarray, fx_px: float, principal: tuple[float, float],
+                       radius_m: float, inset_px: np.ndarray, half_width_px: float) -> np.ndarray:
+    """How far behind its front surface a round shaft of ``radius_m`` can lie at pixels (x, y) of its rim, where
+    the view ray runs psi off the optical axis and the pixel lies ``inset_px`` inside the mask (distance to its
+    edge) of a shaft ``half_width_px`` wide: radius x ((1 - e) sin psi + (1 - sqrt(2 e - e^2)) cos psi), with
+    e = (inset - SILHOUETTE_SLACK_PX) / half_width (0 at the silhouette: radius x (sin psi + cos psi)), with psi
+    at most 45 deg (beyond it the circle's whole depth span, radius x sqrt 2), m.
+
+    (In the plane across the shaft, the ray grazes its circle at the silhouette and meets it first at its front;
+    their depths differ by at most sin psi + cos psi radii: a shaft seen straight on shows its silhouette one
+    radius behind its front, one seen obliquely, near the image's border, up to 1.4. A pixel e half-widths
+    inside the silhouette sees the circle's surface there, nearer the front.)"""
+    tan2 = ((xs - principal[0]) ** 2 + (ys - principal[1]) ** 2) / (fx_px * fx_px)
+    cos = 1.0 / np.sqrt(1.0 + tan2)
+    sin = np.minimum(np.sqrt(tan2) * cos, math.sqrt(0.5))  # beyond 45 deg the circle's whole depth span, sqrt 2
+    cos = np.maximum(cos, math.sqrt(0.5))
+    e = np.clip((inset_px - SILHOUETTE_SLACK_PX) / max(half_width_px, 1.0), 0.0, 1.0)
+    return (radius_m * ((1.0 - e) * sin + (1.0 - np.sqrt(2.0 * e - e * e)) * cos)).astype(np.float32)
+
+
+PLANE_RIDGE_PX2 = 0.5  # added to the variances of the pixel positions in the local plane fit (a thin window), px^2
+
+
+MAX_AXIS_SLOPE = 1.0  # the steepest depth slope along a shaft that the rim test follows: tan(45 deg), a shaft
+# pointing 45 deg away from the image plane; x (depth / fx) per px
+MAX_RELIEF_SLOPE = 1.0  # ... across it: this x its radius (m) / its half-width (px) per px (a round shaft deepens
+# by its radius from its axis to its silhouette: this is its mean slope there)
+
+
+def _surface_at(where: np.ndarray, labels: np.ndarray, source: np.ndarray, interior: np.ndarray, z0: np.ndarray,
+                k: int, mask: np.ndarray, fx_px: float, radius_m: float, half_width_px: float) -> np.ndarray:
+    """The tool's depth at the pixels ``where``, continued from its interior: around each pixel's nearest source
+    pixel (``labels``), the plane fitted by least squares to the interior depth in a k x k window, evaluated at
+    the pixel. Unlike the window's mean, the plane follows the tool's own shape: a shaft that recedes from the
+    camera (lying along tissue that tilts away) deepens along its axis, and a round shaft deepens across it
+    towards its silhouette, by up to its radius; its rim lies behind the window's mean there without being
+    tissue. The plane's slope is bounded by what a shaft can have: along its axis (the mask's main direction)
+    MAX_AXIS_SLOPE x depth / fx per px, across it MAX_RELIEF_SLOPE x radius / half-width per px; a steeper slope
+    is a depth step in the window (tissue inside the mask), which must not explain itself away.
+    (n,) float32, m."""
+    height, width = interior.shape
+    moments = cv2.moments(mask.view(np.uint8), binaryImage=True)
+    theta = 0.5 * math.atan2(2.0 * moments["mu11"], moments["mu20"] - moments["mu02"])
+    ax, ay = math.cos(theta), math.sin(theta)
+    weight = interior.astype(np.float64)
+    ys, xs = np.mgrid[0:height, 0:width]
+    xs = xs - width / 2.0  # about the middle: smaller moments
+    ys = ys - height / 2.0
+    zs = z0.astype(np.float64)
+
+    def box(a):
+        return cv2.boxFilter(a * weight, cv2.CV_64F, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+    n = np.maximum(box(np.ones_like(weight)), 1.0)
+    mx, my, mz = box(xs) / n, box(ys) / n, box(zs) / n
+    cxx = box(xs * xs) / n - mx * mx + PLANE_RIDGE_PX2
+    cyy = box(ys * ys) / n - my * my + PLANE_RIDGE_PX2
+    cxy = box(xs * ys) / n - mx * my
+    cxz = box(xs * zs) / n - mx * mz
+    cyz = box(ys * zs) / n - my * mz
+    det = cxx * cyy - cxy * cxy
+    index = np.zeros(int(labels.max()) + 1, np.int64)
+    index[labels[source]] = np.flatnonzero(source.ravel())
+    at = index[labels[where]]
+
+    def pick(a):
+        return a.ravel()[at]
+
+    cxx, cyy, cxy, cxz, cyz, det = pick(cxx), pick(cyy), pick(cxy), pick(cxz), pick(cyz), pick(det)
+    gx = (cyy * cxz - cxy * cyz) / det
+    gy = (cxx * cyz - cxy * cxz) / det
+    mz = pick(mz)
+    along_limit = MAX_AXIS_SLOPE * np.abs(mz) / fx_px
+    across_limit = MAX_RELIEF_SLOPE * radius_m / max(half_width_px, 1.0)
+    g_along = np.clip(gx * ax + gy * ay, -along_limit, along_limit)
+    g_across = np.clip(-gx * ay + gy * ax, -across_limit, across_limit)
+    dx, dy = xs[where] - pick(mx), ys[where] - pick(my)
+    return (mz + g_along * (dx * ax + dy * ay) + g_across * (-dx * ay + dy * ax)).astype(np.float32)
+
+
+def measure_tools(
+    tool_ids: np.ndarray,
+    depth_m: np.ndarray,
+    left_grey: np.ndarray | None,
+    right_grey: np.ndarray | None,
+    fx_px: float,
+    baseline_m: float,
+    params: DiagnosticParams = DiagnosticParams(),
+    *,
+    selected=None,
+    evidence: bool = False,
+) -> ToolMeasures:
+    """:func:`measure_frame` of every instrument of a frame, each with the others taken out of its tissue.
+
+    ``tool_ids`` (H, W) integer object ids, 0 = background (``Frame.tool_ids``; a bool mask is one
+    instrument, id 1). ``selected``: the object ids to measure (default every id present); ids not
+    selected are still other instruments, never tissue. A frame whose only instrument is measured gets
+    exactly ``measure_frame`` of its mask.
+    """
+    ids = np.asarray(tool_ids)
+    if ids.dtype == bool:
+        ids = ids.view(np.uint8)
+    step = analysis_step(ids.shape[1], params)
+    digest, thumb = _digest(depth_m[::step, ::step]), _thumb(left_grey)
+    counts = np.bincount(ids.ravel()) if ids.dtype.kind == "u" and ids.dtype.itemsize <= 2 else None
+    present = ([int(k) for k in np.flatnonzero(counts) if k != 0] if counts is not None
+               else [int(k) for k in np.unique(ids) if k != 0])
+    measured = present if selected is None else [k for k in present if k in set(int(i) for i in selected)]
+    tools: dict[int, FrameMeasures] = {}
+    small = np.ascontiguousarray(ids[::step, ::step])
+    edges = np.concatenate([ids[0], ids[-1], ids[:, 0], ids[:, -1]])
+    for k in measured:
+        area = int(counts[k]) if counts is not None else int(np.count_nonzero(ids == k))
+        mask_a = small == k
+        others_a = (small != 0) & ~mask_a if len(present) > 1 else None
+        tools[k] = _measure(area, bool((edges == k).any()), mask_a, step, depth_m, left_grey, right_grey, fx_px,
+                            baseline_m, params, evidence, others_a, digest, thumb)
+    area = sum(m.tool_area_px for m in tools.values())
+    shown = [m.evidence for m in tools.values() if m.evidence is not None]
+    return ToolMeasures(tools, digest, thumb, area, merge_evidence(shown) if shown else None)
+
+
+def merge_evidence(pictures: list[FrameEvidence]) -> FrameEvidence:
+    """One :class:`FrameEvidence` of several instruments': the residual pictures pasted into their joint
+    box (the largest residual where they overlap), the contours and regions joined."""
+    if len(pictures) == 1:
+        return pictures[0]
+    x0 = min(e.residual_xywh[0] for e in pictures)
+    y0 = min(e.residual_xywh[1] for e in pictures)
+    x1 = max(e.residual_xywh[0] + e.residual_xywh[2] for e in pictures)
+    y1 = max(e.residual_xywh[1] + e.residual_xywh[3] for e in pictures)
+    residual = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    region = np.zeros((y1 - y0, x1 - x0), bool)
+    for e in pictures:
+        x, y, w, h = e.residual_xywh
+        window = (slice(y - y0, y - y0 + h), slice(x - x0, x - x0 + w))
+        residual[window] = np.maximum(residual[window], e.residual)
+        region[window] |= e.region
+    first = pictures[0]
+    return FrameEvidence((x0, y0, x1 - x0, y1 - y0), residual,
+                         np.concatenate([e.contour_xy for e in pictures]),
+                         np.concatenate([e.contour_on_edge for e in pictures]), region, first.left_grey, first.step)

@@ -25,14 +25,33 @@ class DiagnosticParams:
     dropout_memory_frames: int = checked(30, ge=1)
     # ... unless the last mask touched the border and was below this share of the typical area (it left), 0-1
     exit_area_fraction: float = checked(0.35, ge=0, le=1)
+    # ... or had shrunk below this share of its area the frame it was seen before (moving out fast), 0-1
+    exit_shrink_fraction: float = checked(0.8, ge=0, le=1)
     # relative mask-area change that fires, |dA| / max(A_t, A_prev), 0-1 (not when a mask touches the border)
     mask_area_jump: float = checked(0.5, gt=0, le=1)
     # an extra mask blob counts from this share of the main blob's area, 0-1
     min_blob_area_fraction: float = checked(0.008, ge=0, le=1)
     # ... when farther than this from the main blob (fragments nearer are the same tool), x image width
     blob_gap_frac: float = checked(0.01, gt=0, le=1)
+    # ---- several instruments (object ids), compared by the overlap of their masks on a coarse grid ----
+    # id_swap: an id whose mask overlaps (intersection over the smaller of the two) another id's mask of the
+    # frame before at least this much ...
+    swap_min_overlap: float = checked(0.3, gt=0, le=1)
+    # ... and by at least this much more than its own id's mask of the frame before, 0-1
+    swap_margin: float = checked(0.25, gt=0, le=1)
+    # tools_merged: an instrument gone while another grew by at least this share of its area ...
+    merge_min_growth: float = checked(0.5, gt=0, le=2)
+    # ... and covers at least this share of its mask of the frame before, 0-1
+    merge_min_cover: float = checked(0.5, gt=0, le=1)
+    # an instrument gone whose last mask other instruments now cover at least this much is hidden behind them
+    # (no mask_dropout), 0-1
+    hidden_cover_fraction: float = checked(0.5, gt=0, le=1)
     min_edge_support: float = checked(0.5, ge=0, le=1)  # share of the mask contour on an image edge below which it fires, 0-1
     image_edge_grey: float = checked(8.0, gt=0)  # an image edge: grey gradient (Sobel / 8) at least this, grey levels/px
+    # ... or, where the light is dim, at least this many times the median gradient of the tissue around the tool
+    # (its texture: gradients scale with the light on tissue and silhouette alike), ratio ...
+    edge_texture_factor: float = checked(5.0, gt=0)
+    min_image_edge_grey: float = checked(2.0, gt=0)  # ... and never below this, grey levels/px
     # ---- depth against the mask ----
     # share of the mask's inner rim whose depth lies behind the tool that fires, 0-1
     max_inside_far_fraction: float = checked(0.008, ge=0, le=1)
@@ -42,8 +61,11 @@ class DiagnosticParams:
     ring_frac_hi: float = checked(0.012, gt=0, le=1)  # ... and ends this far out, x image width
     same_depth_m: float = checked(0.002, gt=0)  # "at the tool's depth": within this of the nearby tool depth, m ...
     same_depth_rel: float = checked(0.02, gt=0)  # ... or this share of it, whichever is larger, fraction
-    far_depth_m: float = checked(0.004, gt=0)  # "behind the tool": farther than the nearby tool depth by this, m ...
-    far_depth_rel: float = checked(0.05, gt=0)  # ... or this share of it, whichever is larger, fraction
+    # "behind the tool": farther than the tool's surface continued to the rim by this, m ...
+    far_depth_m: float = checked(0.004, gt=0)
+    # ... or this share of it, or a round shaft's silhouette relief there (tool_diameter_mm / 2 x (sin + cos) of
+    # the view ray's angle off the optical axis), whichever is larger, fraction
+    far_depth_rel: float = checked(0.05, gt=0)
     max_hole_fraction: float = checked(0.4, ge=0, le=1)  # share of invalid depth on and around the tool that fires, 0-1
     # "no depth beside the tool" (depth_holes, the depth source failed there, not the mask): valid depth on less than
     # this share of the band just outside the mask (out to ring_frac_hi); mask_on_tissue and tool_depth_outside

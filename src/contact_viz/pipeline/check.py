@@ -1,28 +1,31 @@
 """`contact-viz check`: the debugger's diagnostics over whole sessions, without Rerun.
 
 :func:`check_session` reads every frame (mask, whole depth map, grey left and right images),
-computes its patch and the frame measurements (:mod:`contact_viz.checks.frame`), spread over
+computes each instrument's patch and measurements (:mod:`contact_viz.checks.frame`), spread over
 ``processes`` processes, then runs the checks in frame order (:class:`FrameChecker`, the same
 object the viewer uses) and the session checks (force lag, frame times). The result is a
-:class:`CheckReport`: which checks fired on which frame ranges.
+:class:`CheckReport`: which checks fired on which frame ranges, and with several instruments (object
+ids) on which instrument too (the table gets a ``tool`` column, "-" for a check of the whole frame;
+the JSON an ``instruments`` list and per check ``tools``). A session of one instrument (id 1, or a
+binary mask) prints as before.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from contact_viz import __version__
-from contact_viz.checks.frame import FrameMeasures, analysis_step, measure_frame, shrink_grey
+from contact_viz.checks.frame import FrameMeasures, ToolMeasures, analysis_step, measure_tools, shrink_grey
 from contact_viz.checks.params import DiagnosticParams
 from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, DepthSource, FrameChecker, PatchNumbers, fired_ranges
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
 from contact_viz.errors import SessionError
-from contact_viz.geometry.patch import compute_patch
 from contact_viz.io.decoders import JPEG_REDUCTIONS, read_jpeg_reduced
 from contact_viz.io.session import JPEG_SUFFIXES, BadFrame, Session, open_session
 from contact_viz.params import PatchParams
@@ -75,36 +78,57 @@ class FrameRecord:
     """One frame as the checks see it: its measurements and patch numbers, or why it could not be read."""
 
     index: int
-    measures: FrameMeasures | None  # None = bad frame
-    patch: PatchNumbers | None
-    signal: float  # -log10(max(|d|, eps)), NaN = no patch
+    measures: ToolMeasures | FrameMeasures | None  # every instrument's (measure_tools); None = bad frame
+    patch: Mapping[int, PatchNumbers] | PatchNumbers | None  # {object id: its patch numbers}
+    signal: float  # -log10(max(|d|, eps)) of the instrument nearest the tissue, NaN = no patch
     bad_reason: str | None = None
     image_problem: str | None = None  # an image that could not be read (its checks skipped), naming the file
 
 
 def measure_session_frame(session: Session, index: int, patch_params: PatchParams, params: DiagnosticParams,
                           evidence: bool = False) -> FrameRecord:
-    """Read frame ``index`` of ``session`` and measure it (patch + frame checks' measurements)."""
+    """Read frame ``index`` of ``session`` and measure it (every instrument's patch and measurements)."""
+    from contact_viz.pipeline.extract import frame_patches
+
     frame = session.load_frame(index, layers=("mask", "depth"))
     if isinstance(frame, BadFrame):
         return FrameRecord(index, None, None, math.nan, frame.reason)
     step = grey_step(session, params)
     (left, left_problem), (right, right_problem) = (_grey_or_problem(session, side, index, step)
                                                     for side in ("left", "right"))
-    record = measure_loaded_frame(session, frame, compute_patch(frame.depth_m, frame.tool_mask, patch_params),
-                                  left, right, params, evidence)
+    patch, patches = frame_patches(frame, patch_params, session.object_ids)
+    record = measure_loaded_frame(session, frame, patch, left, right, params, evidence, tool_patches=patches)
     problem = left_problem or right_problem
     return record if problem is None else replace(record, image_problem=problem)
 
 
+def patch_numbers(patch) -> PatchNumbers:
+    """What the checks use of a :class:`contact_viz.geometry.patch.PatchResult`."""
+    return PatchNumbers(float(patch.distance_m), None if patch.center_xy is None else
+                        (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason)
+
+
+def measure_frame_tools(frame, tool_patches, left_grey, right_grey, fx_px: float, baseline_m: float,
+                        params: DiagnosticParams, evidence: bool = False) -> ToolMeasures:
+    """The checks' measurements of every instrument of a decoded frame (:func:`measure_tools`): those with a
+    patch in ``tool_patches`` ({object id: PatchResult}; None: every instrument of ``frame.tool_mask``)."""
+    ids = frame.tool_ids if frame.tool_ids is not None else frame.tool_mask
+    selected = None if tool_patches is None else tuple(tool_patches)
+    return measure_tools(ids, frame.depth_m, left_grey, right_grey, fx_px, baseline_m, params, selected=selected,
+                         evidence=evidence)
+
+
 def measure_loaded_frame(session: Session, frame, patch, left_grey, right_grey, params: DiagnosticParams,
-                         evidence: bool = False) -> FrameRecord:
-    """The :class:`FrameRecord` of a decoded frame, its patch and its grey images (as load_grey reads them)."""
+                         evidence: bool = False, *, tool_patches=None) -> FrameRecord:
+    """The :class:`FrameRecord` of a decoded frame, its patch(es) and its grey images (as load_grey reads
+    them). ``tool_patches``: {object id: PatchResult} of every instrument (pipeline.extract.frame_patches);
+    None: ``patch`` is the only instrument's (id 1)."""
     K = session.calibration.K
-    measures = measure_frame(frame.tool_mask, frame.depth_m, left_grey, right_grey, float(K[0][0]),
-                             float(session.calibration.baseline_m), params, evidence=evidence)
-    numbers = PatchNumbers(float(patch.distance_m), None if patch.center_xy is None else
-                           (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason)
+    if tool_patches is None:
+        tool_patches = {1: patch} if frame.tool_mask is not None and frame.tool_mask.any() else {}
+    measures = measure_frame_tools(frame, tool_patches, left_grey, right_grey, float(K[0][0]),
+                                   float(session.calibration.baseline_m), params, evidence)
+    numbers = {k: patch_numbers(p) for k, p in tool_patches.items()}
     return FrameRecord(frame.index, measures, numbers, float(patch.signal))
 
 
@@ -138,6 +162,15 @@ class CheckReport:
     # frame check code -> likely cause -> frames it fired on naming that cause (most frames first); a check can
     # name another cause than its usual one (depth_holes: "no depth beside the tool: stereo failed here")
     causes: dict[str, dict[str, int]] = field(default_factory=dict)
+    # the instruments (object ids) the checks saw; with several (or one other than 1) the frame checks are
+    # also reported per instrument: check code -> object id -> (first, last) frame ranges it fired on
+    instruments: tuple[int, ...] = ()
+    tool_fired: dict[str, dict[int, list[tuple[int, int]]]] = field(default_factory=dict)
+
+    @property
+    def several(self) -> bool:
+        """The session has several instruments, or one other than id 1: reported per instrument."""
+        return several_instruments(self.instruments)
 
     def likely_causes(self, code: str) -> list[str]:
         """The likely causes check ``code`` named in this session, most frames first (its usual one if it
@@ -168,8 +201,13 @@ class CheckReport:
                               "measures": (CHECKS.get(code) or SESSION_CHECKS[code])[0],
                               "likely_cause": self.likely_causes(code)[0],
                               **({"causes": self.causes[code]} if len(self.causes.get(code, {})) > 1 else {}),
-                              **({"first_message": self.messages[code]} if code in self.messages else {})}
+                              **({"first_message": self.messages[code]} if code in self.messages else {}),
+                              **({"tools": {str(k): {"frames": sum(b - a + 1 for a, b in r),
+                                                     "ranges": [list(x) for x in r]}
+                                            for k, r in self.tool_fired[code].items()}}
+                                 if self.several and code in self.tool_fired else {})}
                        for code in (*CHECKS, *SESSION_CHECKS)},
+            **({"instruments": list(self.instruments)} if self.several else {}),
             "force_lag": lag,
             "unreadable_images": None if self.unreadable_images is None else {
                 "frames": len(self.unreadable_images[0]),
@@ -202,7 +240,9 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         records = task(0, n)
     else:
         records = run_chunks(task, n, chunk_size=CHUNK_FRAMES, processes=processes)
-    frames, causes = fired_frames(records, params, session.image_size[1], session.depth_source)
+    instruments = record_instruments(records)
+    frames, causes, by_tool = fired_frames(records, params, session.image_size[1], session.depth_source,
+                                           several=several_instruments(instruments))
     signal = np.array([r.signal for r in records], dtype=np.float64)
     suspect = np.zeros(n, bool)
     for idx, _ in frames.values():
@@ -223,7 +263,27 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
         messages={code: msg for code, (_, msg) in frames.items()},
         unreadable_images=_unreadable_images(records),
         causes=causes,
+        instruments=instruments,
+        tool_fired={code: {k: fired_ranges(idx) for k, idx in sorted(tools.items())}
+                    for code, tools in by_tool.items()},
     )
+
+
+def several_instruments(instruments: Sequence[int]) -> bool:
+    """Whether a session with these instruments (object ids) is reported per instrument: several, or one
+    that is not id 1 (a binary mask reads as id 1)."""
+    return len(instruments) > 1 or any(k != 1 for k in instruments)
+
+
+def record_instruments(records: list[FrameRecord]) -> tuple[int, ...]:
+    """The object ids measured with mask pixels in any of ``records``, ascending."""
+    ids: set[int] = set()
+    for r in records:
+        if isinstance(r.measures, ToolMeasures):
+            ids.update(k for k, m in r.measures.tools.items() if m.tool_area_px > 0)
+        elif r.measures is not None and r.measures.tool_area_px > 0:
+            ids.add(1)
+    return tuple(sorted(ids))
 
 
 def _unreadable_images(records: list[FrameRecord]) -> tuple[list[int], str] | None:
@@ -233,13 +293,16 @@ def _unreadable_images(records: list[FrameRecord]) -> tuple[list[int], str] | No
 
 
 def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_width: int,
-                 depth_source: DepthSource = "depth") -> tuple[dict, dict[str, dict[str, int]]]:
+                 depth_source: DepthSource = "depth", several: bool | None = None
+                 ) -> tuple[dict, dict[str, dict[str, int]], dict[str, dict[int, list[int]]]]:
     """Run the frame checks over ``records`` in order: (code -> (frame indices, first message),
-    code -> likely cause -> frames, most frames first). ``depth_source``: the session's
-    (``Session.depth_source``), for the wording of the causes."""
-    checker = FrameChecker(params, image_width, depth_source)
+    code -> likely cause -> frames, most frames first, code -> object id -> frame indices).
+    ``depth_source``: the session's (``Session.depth_source``), for the wording of the causes;
+    ``several``: the messages name the instrument (FrameChecker)."""
+    checker = FrameChecker(params, image_width, depth_source, several=several)
     out: dict[str, tuple[list[int], str]] = {}
     causes: dict[str, dict[str, int]] = {}
+    by_tool: dict[str, dict[int, list[int]]] = {}
     for record in records:
         if record.measures is None:
             out.setdefault("bad_frame", ([], f"frame {record.index}: {record.bad_reason}"))[0].append(record.index)
@@ -247,11 +310,17 @@ def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_wid
             continue
         fired, _ = checker.check(record.index, record.measures, record.patch)
         for diagnostic in fired:
-            out.setdefault(diagnostic.code, ([], f"frame {diagnostic.index}: {diagnostic.message}"))[0].append(
-                diagnostic.index)
-            named = causes.setdefault(diagnostic.code, {})
-            named[diagnostic.likely_cause] = named.get(diagnostic.likely_cause, 0) + 1
-    return out, {code: dict(sorted(named.items(), key=lambda kv: -kv[1])) for code, named in causes.items()}
+            frames = out.setdefault(diagnostic.code, ([], f"frame {diagnostic.index}: {diagnostic.message}"))[0]
+            if not frames or frames[-1] != diagnostic.index:  # several instruments: a frame counts once
+                frames.append(diagnostic.index)
+                named = causes.setdefault(diagnostic.code, {})
+                named[diagnostic.likely_cause] = named.get(diagnostic.likely_cause, 0) + 1
+            if diagnostic.tool is not None:
+                tool_frames = by_tool.setdefault(diagnostic.code, {}).setdefault(diagnostic.tool, [])
+                if not tool_frames or tool_frames[-1] != diagnostic.index:
+                    tool_frames.append(diagnostic.index)
+    return (out, {code: dict(sorted(named.items(), key=lambda kv: -kv[1])) for code, named in causes.items()},
+            by_tool)
 
 
 def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
@@ -259,6 +328,8 @@ def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
     name = report.session if Path(report.path).name == report.session else f"{report.session} ({report.path})"
     head = (f"{name}: {report.n_frames} frames, {report.flagged_frames} flagged "
             f"({report.elapsed_s:.1f} s)")
+    if report.several:
+        head += f"; instruments {', '.join(str(k) for k in report.instruments)}"
     lines = [head]
     if report.unreadable_images is not None:
         frames, first = report.unreadable_images
@@ -268,6 +339,8 @@ def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
         lines.append("  no check fired")
         return lines
     width = max(len(c) for c in fired)
+    if report.several:
+        return lines + _tool_table(report, fired, width, max_ranges)
     lines.append(f"  {'check':{width}s}  frames  ranges                          likely cause")
     for code in fired:
         ranges = report.fired[code]
@@ -279,6 +352,33 @@ def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
         named = report.likely_causes(code)
         cause = named[0] if len(named) == 1 else "; ".join(f"{c} ({report.causes[code][c]} frame(s))" for c in named)
         lines.append(f"  {code:{width}s}  {report.counts[code]:6d}  {text:30s}  {cause}")
+    return lines
+
+
+def _ranges_text(ranges: list[tuple[int, int]], max_ranges: int) -> str:
+    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in ranges[:max_ranges])
+    if len(ranges) > max_ranges:
+        text += f", ... ({len(ranges)} ranges)"
+    return text
+
+
+def _tool_table(report: CheckReport, fired: list[str], width: int, max_ranges: int) -> list[str]:
+    """report_table's rows for a session of several instruments: one per check and instrument it fired on
+    (tool "-": a check of the whole frame or session)."""
+    lines = [f"  {'check':{width}s}  tool  frames  ranges                          likely cause"]
+    for code in fired:
+        named = report.likely_causes(code)
+        cause = named[0] if len(named) == 1 else "; ".join(f"{c} ({report.causes[code][c]} frame(s))" for c in named)
+        per_tool = report.tool_fired.get(code)
+        if not per_tool:
+            text = _ranges_text(report.fired[code], max_ranges)
+            if code == "force_lag" and report.force_lag is not None:
+                text = f"all ({report.force_lag.lag_frames:+d} frames, {report.force_lag.lag_s:+.3f} s)"
+            lines.append(f"  {code:{width}s}  {'-':>4s}  {report.counts[code]:6d}  {text:30s}  {cause}")
+            continue
+        for tool, ranges in per_tool.items():
+            frames = sum(b - a + 1 for a, b in ranges)
+            lines.append(f"  {code:{width}s}  {tool:4d}  {frames:6d}  {_ranges_text(ranges, max_ranges):30s}  {cause}")
     return lines
 
 

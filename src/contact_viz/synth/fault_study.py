@@ -20,9 +20,10 @@ import numpy as np
 
 from contact_viz.checks.params import DiagnosticParams
 from contact_viz.pipeline.check import CheckReport, check_session
-from contact_viz.synth.faults import FAULT_KINDS, inject_fault
+from contact_viz.synth.faults import ALL_FAULT_KINDS, MULTI_FAULT_KINDS, inject_fault, read_mask_ids
 
-__all__ = ["InjectionOutcome", "inject_and_check_job", "make_session_job", "SEVERITY", "detection_table", "flagged_frames", "inject_and_check", "plan_windows",
+__all__ = ["InjectionOutcome", "SEVERITY", "detection_table", "flagged_frames", "inject_and_check",
+           "inject_and_check_job", "instruments_visible", "make_session_job", "plan_pair_windows", "plan_windows",
            "read_truth_contact"]
 
 # Severity drawn per injection (see contact_viz.synth.faults), for a 320 px wide image: lengths scale with width.
@@ -37,7 +38,10 @@ SEVERITY: dict[str, tuple] = {
     "depth_misregistration": ("px", 4.0, 8.0),  # depth shifted
     "force_offset": ("frames", 4, 8),  # +- frames
     "frozen_depth": ("fixed", 0.0),
+    "id_swap": ("fixed", 0.0),  # ids 1 and 2 exchanged (two-instrument sessions)
+    "tools_merged": ("fixed", 0.0),  # one id takes in the other (which one: from the seed)
 }
+MIN_VISIBLE_PX = 30  # an instrument counts as in view with at least this many mask pixels (at 320 px width), px
 REFERENCE_WIDTH_PX = 320  # SEVERITY lengths are for this image width, px
 
 
@@ -91,6 +95,66 @@ def plan_windows(contact: np.ndarray, rng: np.random.Generator, visible: np.ndar
     return {"approach": tuple(range(a0, a0 + length)), "contact": tuple(range(c0, c0 + c_len))}
 
 
+def plan_pair_windows(contact: np.ndarray, rng: np.random.Generator, both: np.ndarray) -> dict[str, tuple[int, ...]]:
+    """Windows for a failure between two instruments (:data:`MULTI_FAULT_KINDS`): like :func:`plan_windows`
+    an "approach" window of 4-10 frames without contact (here: no instrument in contact within 3 frames; the
+    second instrument often touches first) and a contact window of 3-8 frames in a contact run, but only
+    over frames where both instruments are in view (``both``, bool per frame), as is the frame before each
+    window; each in the longest such run, shorter (down to 2 frames) where the runs are short. Raises
+    ValueError when there is no such place."""
+    contact = np.asarray(contact, dtype=bool)
+    both = np.asarray(both, dtype=bool)
+    ok = both & np.concatenate([[False], both[:-1]])  # this frame and the one before show both
+
+    def place(allowed: np.ndarray, lo: int, hi: int) -> tuple[int, ...]:
+        runs, start = [], None
+        for i, a in enumerate(np.append(allowed, False)):
+            if a and start is None:
+                start = i
+            elif not a and start is not None:
+                runs.append((start, i))
+                start = None
+        if not runs:
+            raise ValueError("no frames with both instruments in view for a window")
+        r0, r1 = max(runs, key=lambda r: r[1] - r[0])
+        length = min(int(rng.integers(lo, hi + 1)), r1 - r0)
+        if length < 2:
+            raise ValueError("both instruments are in view for too short a time for a window")
+        a0 = int(rng.integers(r0, r1 - length + 1))
+        return tuple(range(a0, a0 + length))
+
+    near_contact = np.convolve(contact.astype(int), np.ones(7, int), mode="same") > 0  # within 3 frames of one
+    before = ok & ~near_contact  # approaching (or retracting): no instrument in contact nearby
+    before[:2] = False
+    during = ok & contact
+    if not during.any():
+        raise ValueError("no contact frames with both instruments in view")
+    runs, start = [], None
+    for i, c in enumerate(np.append(contact, False)):
+        if c and start is None:
+            start = i
+        elif not c and start is not None:
+            runs.append((start, i))
+            start = None
+    r0, r1 = max(runs, key=lambda r: int(during[r[0]:r[1]].sum()))
+    in_run = np.zeros_like(during)
+    in_run[r0:r1] = during[r0:r1]
+    return {"approach": place(before, 4, 10), "contact": place(in_run, 3, 8)}
+
+
+def instruments_visible(session_dir: str | Path, min_px: int = MIN_VISIBLE_PX) -> np.ndarray:
+    """(frames, 2) bool: instruments 1 and 2 in view (mask pixels of that object id, at least ``min_px`` at
+    320 px width, scaled by the area), masks/ in frame order."""
+    paths = sorted((p for p in (Path(session_dir) / "masks").iterdir() if not p.name.startswith(".")),
+                   key=lambda p: int(p.stem))
+    out = []
+    for path in paths:
+        ids, _ = read_mask_ids(path)
+        limit = min_px * (ids.shape[1] / REFERENCE_WIDTH_PX) ** 2
+        out.append((np.count_nonzero(ids == 1) >= limit, np.count_nonzero(ids == 2) >= limit))
+    return np.array(out, dtype=bool).reshape(-1, 2)
+
+
 def _severity(kind: str, rng: np.random.Generator, width: int) -> float:
     spec = SEVERITY[kind]
     if spec[0] == "fixed":
@@ -122,7 +186,10 @@ def inject_and_check(session_dir: str | Path, work_dir: str | Path, kind: str, s
     """Inject ``kind`` into ``session_dir`` in an approach and a contact window, check the copy."""
     session_dir = Path(session_dir)
     rng = np.random.default_rng(seed)
-    windows = plan_windows(read_truth_contact(session_dir), rng, _tool_visible(session_dir))
+    if kind in MULTI_FAULT_KINDS:
+        windows = plan_pair_windows(read_truth_contact(session_dir), rng, instruments_visible(session_dir).all(axis=1))
+    else:
+        windows = plan_windows(read_truth_contact(session_dir), rng, _tool_visible(session_dir))
     width = _image_width(session_dir)
     severity = _severity(kind, rng, width)
     dst = Path(work_dir) / f"{session_dir.name}_{kind}_{seed}"
@@ -193,7 +260,7 @@ def detected(outcome: InjectionOutcome, phase: str, min_share: float = 0.9, onse
 def detection_table(outcomes: list[InjectionOutcome]) -> list[dict]:
     """Per kind: flagged / injected frames and injections meeting the target, in approach and in contact."""
     rows = []
-    for kind in FAULT_KINDS:
+    for kind in ALL_FAULT_KINDS:
         mine = [o for o in outcomes if o.kind == kind]
         if not mine:
             continue
@@ -212,11 +279,14 @@ def detection_table(outcomes: list[InjectionOutcome]) -> list[dict]:
 
 
 def make_session_job(args) -> Path:
-    """``generate_session(out, SynthParams(phantom, frames, seed, width, height))`` from one tuple (for process pools)."""
+    """``generate_session(out, SynthParams(phantom, frames, seed, width, height[, tools[, shaft_elevation_deg]]))``
+    from one tuple (for process pools)."""
     from contact_viz.synth import SynthParams, generate_session
 
-    out, phantom, seed, frames, width, height = args
-    return generate_session(out, SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height))
+    out, phantom, seed, frames, width, height, *more = args
+    extra = dict(zip(("tools", "shaft_elevation_deg"), more))
+    return generate_session(out, SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height,
+                                             **extra))
 
 
 def inject_and_check_job(args) -> InjectionOutcome:

@@ -19,6 +19,17 @@ Severity (``Fault.severity``) by kind, in the session's own pixels where it is a
 * ``force_offset``: shift of the force stream, frames (force of frame i is that of frame i - k): the
   whole session.
 * ``frozen_depth``: unused (the depth of the frame before the first injected frame is repeated).
+
+Two more need a session of several instruments (:data:`MULTI_FAULT_KINDS`; masks with object ids 1 and
+2, e.g. ``SynthParams(tools=2)``); what the segmenter (SAM2) gets wrong there:
+
+* ``id_swap``: unused; the object ids of two instruments (1 and 2) are exchanged in the injected frames
+  (the segmenter's identity switch; the ids return after them).
+* ``tools_merged``: unused; one instrument takes in the other's pixels in the injected frames (both written
+  with one id, the other id gone). Which one (1 or 2) is drawn from the seed; the returned
+  ``Fault.severity`` is its id.
+
+The mask faults of one instrument change object id 1 (``target_id``) and leave the others as they are.
 """
 
 from __future__ import annotations
@@ -36,12 +47,15 @@ from PIL import Image
 
 from contact_viz.synth.sensors import spread_tool_depth
 
-__all__ = ["FAULT_KINDS", "Fault", "inject_fault", "read_truth_phases"]
+__all__ = ["ALL_FAULT_KINDS", "FAULT_KINDS", "MULTI_FAULT_KINDS", "Fault", "inject_fault", "read_mask_ids",
+           "read_truth_phases"]
 
 FAULT_KINDS = (
     "mask_dropout", "mask_drift", "mask_bleed", "second_object", "depth_holes", "edge_bleeding",
     "depth_scale", "depth_misregistration", "force_offset", "frozen_depth",
 )
+MULTI_FAULT_KINDS = ("id_swap", "tools_merged")  # failures of masks with several instruments (object ids)
+ALL_FAULT_KINDS = FAULT_KINDS + MULTI_FAULT_KINDS
 MASK_FAULTS = ("mask_dropout", "mask_drift", "mask_bleed", "second_object")
 DEPTH_FAULTS = ("depth_holes", "edge_bleeding", "depth_scale", "depth_misregistration", "frozen_depth")
 
@@ -81,18 +95,47 @@ def _replace(path: Path, write) -> None:
     os.replace(tmp, path)
 
 
-def _read_mask(path: Path) -> tuple[np.ndarray, Image.Image]:
+def read_mask_ids(path: str | Path) -> tuple[np.ndarray, Image.Image]:
+    """(object ids (H, W) uint8, the image) of a mask file: palettized / single-channel values as they are
+    (0 = background), a binary 0/255 mask as id 1."""
     image = Image.open(path)
     image.load()
-    return np.asarray(image) > 0, image
+    ids = np.asarray(image)
+    if ids.ndim == 3:
+        ids = ids[..., 0]
+    if image.mode != "P" and ids.max() == 255 and np.isin(ids, (0, 255)).all():
+        ids = (ids > 0).astype(np.uint8)
+    return ids.astype(np.uint8), image
 
 
-def _write_mask(path: Path, mask: np.ndarray, like: Image.Image) -> None:
-    out = Image.fromarray(mask.astype(np.uint8) * (1 if like.mode == "P" else 255), mode="L")
+def _read_mask(path: Path, target_id: int = 1) -> tuple[np.ndarray, Image.Image, np.ndarray]:
+    """(the target instrument's mask, the image, every object id) of a mask file. With one instrument
+    the target is every mask pixel (whatever its value)."""
+    ids, image = read_mask_ids(path)
+    several = np.unique(ids[ids > 0]).size > 1
+    return (ids == target_id) if several else ids > 0, image, ids
+
+
+def _write_ids(path: Path, ids: np.ndarray, like: Image.Image) -> None:
+    values = ids.astype(np.uint8)
+    if like.mode != "P" and values.max(initial=0) <= 1:
+        values = values * 255  # a binary mask stays 0/255
+    out = Image.fromarray(values, mode="L")
     if like.mode == "P":
         out = out.convert("P")
         out.putpalette(like.getpalette())
     _replace(path, lambda tmp: out.save(tmp, format="PNG"))
+
+
+def _write_mask(path: Path, mask: np.ndarray, like: Image.Image, ids: np.ndarray | None = None,
+                target_id: int = 1) -> None:
+    """Write the target instrument's new ``mask`` into the mask file (the other instruments' ids kept)."""
+    if ids is None or np.unique(ids[ids > 0]).size <= 1:
+        _write_ids(path, mask.astype(np.uint8), like)
+        return
+    out = np.where(ids == target_id, 0, ids)
+    out[mask] = target_id
+    _write_ids(path, out, like)
 
 
 def _write_depth(path: Path, depth: np.ndarray) -> None:
@@ -200,8 +243,8 @@ def inject_fault(src: str | Path, dst: str | Path, kind: str, frames, severity: 
     ``frames``: frame indices (positions in the sorted stems). ``severity``: see the module docstring.
     Returns the :class:`Fault`; for ``force_offset`` its frames are all frames of the session.
     """
-    if kind not in FAULT_KINDS:
-        raise ValueError(f"kind must be one of {FAULT_KINDS}, got {kind!r}")
+    if kind not in ALL_FAULT_KINDS:
+        raise ValueError(f"kind must be one of {ALL_FAULT_KINDS}, got {kind!r}")
     src, dst = Path(src), Path(dst)
     if dst.exists():
         raise ValueError(f"{dst}: already exists")
@@ -237,11 +280,34 @@ def inject_fault(src: str | Path, dst: str | Path, kind: str, frames, severity: 
         for i in frames:
             _write_depth(dst / "depth" / f"{stems[i]}.npy", frozen)
         return Fault(kind, frames, severity)
+    if kind in MULTI_FAULT_KINDS:
+        return _inject_ids(src, dst, kind, frames, stems, rng)
     for i in frames:
-        mask, like = _read_mask(src / "masks" / f"{stems[i]}.png")
+        mask, like, ids = _read_mask(src / "masks" / f"{stems[i]}.png")
         if kind in MASK_FAULTS:
-            _write_mask(dst / "masks" / f"{stems[i]}.png", _mask_fault(kind, mask, severity, rng), like)
+            _write_mask(dst / "masks" / f"{stems[i]}.png", _mask_fault(kind, mask, severity, rng), like, ids)
         else:
             depth = np.load(src / "depth" / f"{stems[i]}.npy")
             _write_depth(dst / "depth" / f"{stems[i]}.npy", _depth_fault(kind, depth, mask, severity, fx_b, rng))
     return Fault(kind, frames, severity)
+
+
+def _inject_ids(src: Path, dst: Path, kind: str, frames: tuple[int, ...], stems: list[str],
+                rng: np.random.Generator) -> Fault:
+    """id_swap / tools_merged between object ids 1 and 2 in ``frames`` (module docstring)."""
+    seen = set()
+    for i in frames:
+        seen.update(int(k) for k in np.unique(read_mask_ids(src / "masks" / f"{stems[i]}.png")[0]))
+    if not {1, 2} <= seen:
+        raise ValueError(f"{kind} needs instruments 1 and 2 in the masks of the injected frames; "
+                         f"{src / 'masks'} has object ids {sorted(seen - {0})} there")
+    keep = int(rng.integers(1, 3))  # tools_merged: the id that takes in the other
+    for i in frames:
+        ids, like = read_mask_ids(src / "masks" / f"{stems[i]}.png")
+        out = ids.copy()
+        if kind == "id_swap":
+            out[ids == 1], out[ids == 2] = 2, 1
+        else:
+            out[(ids == 1) | (ids == 2)] = keep
+        _write_ids(dst / "masks" / f"{stems[i]}.png", out, like)
+    return Fault(kind, frames, float(keep) if kind == "tools_merged" else 0.0)

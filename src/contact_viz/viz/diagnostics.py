@@ -4,9 +4,11 @@ Each check has a code (the keys of :data:`DIAGNOSTIC_CODES`, documented in docs/
 mask checks (``mask_dropout``, ``extra_blob``, ``mask_area_jump``, ``mask_image_edges``), depth-
 against-mask checks (``mask_on_tissue``, ``tool_depth_outside``, ``depth_holes``), scale and
 stereo checks (``tool_width``, ``stereo_residual``), ``frozen_depth``, and the patch's own
-(``bad_frame``, ``no_patch``, ``distance_jump``). Session checks (``force_lag``, ``frame_times``) run
-once at the end (:meth:`DiagnosticsTracker.finish`). The same :class:`FrameChecker` serves
-``contact-viz check``, so the viewer and the command flag the same frames.
+(``bad_frame``, ``no_patch``, ``distance_jump``); with several instruments each is checked on its own
+(its messages start "tool <id>: ") and against the others (``id_swap``, ``tools_merged``). Session
+checks (``force_lag``, ``frame_times``) run once at the end (:meth:`DiagnosticsTracker.finish`). The
+same :class:`FrameChecker` and measurements serve ``contact-viz check``, so the viewer and the command
+flag the same frames.
 """
 
 from __future__ import annotations
@@ -16,10 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contact_viz.checks.frame import FrameEvidence, measure_frame
+from contact_viz.checks.frame import FrameEvidence
 from contact_viz.checks.params import DiagnosticParams
-from contact_viz.checks.rules import (CHECKS, SESSION_CHECKS, DepthSource, Diagnostic, FrameChecker, PatchNumbers,
-                                     fired_ranges)
+from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, DepthSource, Diagnostic, FrameChecker, fired_ranges
 from contact_viz.checks.session import force_lag, frame_time_problems
 
 __all__ = ["DIAGNOSTIC_CODES", "SESSION_DIAGNOSTIC_CODES", "Diagnostic", "DiagnosticParams", "DiagnosticsTracker",
@@ -67,17 +68,23 @@ class DiagnosticsTracker:
             scores, ev = {}, None
             self.checker.reset_previous()
         else:
-            measures = measure_frame(frame.tool_mask, frame.depth_m, left_grey, right_grey, self.fx_px,
-                                     self.baseline_m, self.params, evidence=evidence)
-            numbers = PatchNumbers(float(patch.distance_m), None if patch.center_xy is None else
-                                   (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason)
+            from contact_viz.pipeline.check import measure_frame_tools, patch_numbers
+
+            tool_patches = frame_result.tool_patches
+            if tool_patches is None:  # a FrameResult of one tool
+                tool_patches = {1: patch} if frame.tool_mask is not None and frame.tool_mask.any() else {}
+            measures = measure_frame_tools(frame, tool_patches, left_grey, right_grey, self.fx_px, self.baseline_m,
+                                           self.params, evidence)
+            numbers = {k: patch_numbers(p) for k, p in tool_patches.items()}
             fired, scores = self.checker.check(frame.index, measures, numbers)
             ev = measures.evidence
             self._signal[frame.index] = float(patch.signal)
         self.frames += 1
         for diagnostic in fired:
-            self.counts[diagnostic.code] += 1
-            self.fired_frames.setdefault(diagnostic.code, []).append(diagnostic.index)
+            frames = self.fired_frames.setdefault(diagnostic.code, [])
+            if not frames or frames[-1] != diagnostic.index:  # several instruments: a frame counts once
+                self.counts[diagnostic.code] += 1
+                frames.append(diagnostic.index)
         return FrameDiagnostics(fired, scores, ev)
 
     def finish(self, session, indices) -> list[Diagnostic]:
