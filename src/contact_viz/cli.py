@@ -429,6 +429,7 @@ def check(
     strict: Annotated[bool, typer.Option(help="Exit with status 1 when any check fired.")] = False,
     tool_diameter_mm: Annotated[float, typer.Option(min=0.1, help="The instrument's shaft diameter, mm "
                                 "(docs/diagnostics.md).")] = 8.0,
+    object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
     processes: Annotated[int, typer.Option(min=1, help="Processes per session, this one included.")] = 1,
 ) -> None:
@@ -451,7 +452,7 @@ def check(
             typer.echo(line)
 
     reports, errors = run_check(session_dirs, params=params, cache_dir=cache_dir, processes=processes,
-                                json_path=json_path, on_report=report,
+                                json_path=json_path, on_report=report, object_ids=object_ids,
                                 on_error=lambda m: typer.secho(f"error: {m}", fg=typer.colors.RED, err=True))
     if json_path is not None:
         typer.echo(f"{json_path}: {len(reports)} session(s)")

@@ -383,8 +383,10 @@ def _tool_table(report: CheckReport, fired: list[str], width: int, max_ranges: i
 
 
 def run_check(session_dirs, *, params: DiagnosticParams | None = None, cache_dir=None, processes: int = 1,
-              json_path=None, on_report=None, on_error=None) -> tuple[list[CheckReport], list[str]]:
-    """`contact-viz check`: :func:`check_session` on each of ``session_dirs`` in turn.
+              json_path=None, on_report=None, on_error=None,
+              object_ids: Sequence[int] | None = None) -> tuple[list[CheckReport], list[str]]:
+    """`contact-viz check`: :func:`check_session` on each of ``session_dirs`` in turn (``object_ids``: only those
+    instruments).
 
     ``on_report(report)`` / ``on_error(message)`` are called as each session finishes (the CLI prints
     there). A session that cannot be opened is an error line naming it; the others go on. With
@@ -397,7 +399,8 @@ def run_check(session_dirs, *, params: DiagnosticParams | None = None, cache_dir
     errors: list[str] = []
     for session_dir in session_dirs:
         try:
-            report = check_session(session_dir, params=params, cache_dir=cache_dir, processes=processes)
+            report = check_session(session_dir, params=params, cache_dir=cache_dir, processes=processes,
+                                   object_ids=object_ids)
         except (SessionError, ValueError) as exc:
             errors.append(str(exc))
             if on_error is not None:
