@@ -79,13 +79,7 @@ def plan_windows(contact: np.ndarray, rng: np.random.Generator, visible: np.ndar
     if last_start < seen + 2:
         raise ValueError("session too short before its first contact for an approach window")
     a0 = int(rng.integers(seen + 2, last_start + 1))
-    runs, start = [], None
-    for i, c in enumerate(np.append(contact, False)):
-        if c and start is None:
-            start = i
-        elif not c and start is not None:
-            runs.append((start, i))
-            start = None
+    runs = _runs(contact)
     if not runs:
         raise ValueError("session has no contact frames")
     r0, r1 = max(runs, key=lambda r: r[1] - r[0])
@@ -93,6 +87,18 @@ def plan_windows(contact: np.ndarray, rng: np.random.Generator, visible: np.ndar
     c_len = min(c_len, r1 - r0)
     c0 = int(rng.integers(r0, r1 - c_len + 1))
     return {"approach": tuple(range(a0, a0 + length)), "contact": tuple(range(c0, c0 + c_len))}
+
+
+def _runs(flags) -> list[tuple[int, int]]:
+    """(start, stop) of every run of True in ``flags``, half-open, in order."""
+    runs, start = [], None
+    for i, flag in enumerate(np.append(np.asarray(flags, dtype=bool), False)):
+        if flag and start is None:
+            start = i
+        elif not flag and start is not None:
+            runs.append((start, i))
+            start = None
+    return runs
 
 
 def plan_pair_windows(contact: np.ndarray, rng: np.random.Generator, both: np.ndarray) -> dict[str, tuple[int, ...]]:
@@ -107,13 +113,7 @@ def plan_pair_windows(contact: np.ndarray, rng: np.random.Generator, both: np.nd
     ok = both & np.concatenate([[False], both[:-1]])  # this frame and the one before show both
 
     def place(allowed: np.ndarray, lo: int, hi: int) -> tuple[int, ...]:
-        runs, start = [], None
-        for i, a in enumerate(np.append(allowed, False)):
-            if a and start is None:
-                start = i
-            elif not a and start is not None:
-                runs.append((start, i))
-                start = None
+        runs = _runs(allowed)
         if not runs:
             raise ValueError("no frames with both instruments in view for a window")
         r0, r1 = max(runs, key=lambda r: r[1] - r[0])
