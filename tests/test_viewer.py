@@ -119,14 +119,19 @@ class Recording:
         self.blueprints = reader.blueprints()
         self.rows: dict[tuple[str, str], list[tuple[int, object]]] = defaultdict(list)
         self.static: dict[tuple[str, str], object] = {}
+        static_row: dict[tuple[str, str], bytes] = {}
         self.blueprint_rows: dict[str, list[str]] = {}
         for chunk in reader.stream():
             batch = chunk.to_record_batch()
             entity = chunk.entity_path.lstrip("/")
             components = [n for n in batch.schema.names if ":" in n]
             if chunk.is_static:
+                # static data: the last write wins by row id (creation order), whatever the chunks' order in the file
+                row_id = batch.column("rerun.controls.RowId")[batch.num_rows - 1].as_py()
                 for name in components:
-                    self.static[(entity, name)] = batch.column(name)[batch.num_rows - 1]
+                    if row_id >= static_row.get((entity, name), b""):
+                        static_row[(entity, name)] = row_id
+                        self.static[(entity, name)] = batch.column(name)[batch.num_rows - 1]
                 continue
             frames = batch.column("frame").to_pylist()
             for name in components:
