@@ -274,16 +274,21 @@ def _check_keys(data: dict[str, Any], expected: set[str], where: str) -> None:
         )
 
 
-def _check_sessions(
-    signals: Sequence[Any], labels: Sequence[Any], names: Sequence[str]
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Validated (signal, labels) pairs, one per session; errors name the session."""
+def _check_session_lists(signals: Sequence[Any], labels: Sequence[Any]) -> None:
+    """Per-session sequences of signals and labels, one label array per session, at least one session."""
     if isinstance(signals, np.ndarray) or isinstance(labels, np.ndarray):
         raise ValueError("signals, labels: expected sequences (e.g. lists) of per-session 1-D arrays, got an array")
     if len(signals) != len(labels):
         raise ValueError(f"signals, labels: expected one label array per session, got {len(signals)} and {len(labels)}")
     if len(signals) == 0:
         raise ValueError("signals: expected at least one session, got none")
+
+
+def _check_sessions(
+    signals: Sequence[Any], labels: Sequence[Any], names: Sequence[str]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Validated (signal, labels) pairs, one per session; errors name the session."""
+    _check_session_lists(signals, labels)
     out = []
     for name, sig, lab in zip(names, signals, labels):
         x = _check_signal(sig, f"signal of {name}")
@@ -297,12 +302,7 @@ def _check_scene_sessions(
 ) -> list[tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray | None]]:
     """Per session of ``LosoEnsemble.fit``: (its (signal, labels) sequences, its scene labels, where each
     instrument is present (None for a session of one sequence)); errors name the session."""
-    if isinstance(signals, np.ndarray) or isinstance(labels, np.ndarray):
-        raise ValueError("signals, labels: expected sequences (e.g. lists) of per-session 1-D arrays, got an array")
-    if len(signals) != len(labels):
-        raise ValueError(f"signals, labels: expected one label array per session, got {len(signals)} and {len(labels)}")
-    if len(signals) == 0:
-        raise ValueError("signals: expected at least one session, got none")
+    _check_session_lists(signals, labels)
     for what, given in (("scene_labels", scene_labels), ("present", present)):
         if given is not None and len(given) != len(signals):
             raise ValueError(f"{what}: expected one entry per session ({len(signals)}), got {len(given)}")
