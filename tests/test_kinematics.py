@@ -170,7 +170,7 @@ def test_debugger_draws_the_kinematic_tip_for_a_known_hand_eye(session_with_pose
     rr.set_strict_mode(True)
     opened = rerun_log.open_recording(save=out, blueprint=rerun_log.default_blueprint(with_kinematics=True))
     run_debugger(session, opened.rec, options)
-    opened.rec.disconnect()
+    opened.close()
     rows = rrd_rows(out)
     kin = read_kinematics(session_with_pose / "kinematics.csv")
     K = session.calibration.K

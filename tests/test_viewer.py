@@ -176,7 +176,7 @@ def run(session_dir: Path, out: Path, options=DebuggerOptions(), model=None, **k
     session = open_session(session_dir)
     opened = open_recording(save=out, blueprint=rerun_log.default_blueprint(with_model=model is not None))
     summary = run_debugger(session, opened.rec, options, model=model, **kwargs)
-    opened.rec.disconnect()
+    opened.close()
     return session, summary, Recording(out)
 
 
@@ -459,10 +459,16 @@ def test_killed_process_leaves_what_was_flushed(session_dir, tmp_path):
     """)
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert proc.returncode == -9, proc.stderr
+    assert not out.exists()  # never a cut-off recording under the name asked for
+    (part,) = out.parent.glob(f".{out.name}.*-*.part")  # the staging file, flushed up to frame 5
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # no footer: RrdReader warns and scans the whole file
-        rec = Recording(out)
+        rec = Recording(part)
     assert rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer") == list(range(6))
+    opened = open_recording(save=out)  # the next run to that name removes the dead run's staging file
+    assert not part.exists()
+    opened.close()
+    assert out.exists()
 
 
 def test_open_recording_needs_a_sink(tmp_path):

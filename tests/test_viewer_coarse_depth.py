@@ -56,7 +56,7 @@ def view(root: Path, out: Path, cache: Path, **kwargs):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # (a frame without a patch may warn; not what is tested here)
         summary = run_debugger(session, opened.rec, options)
-    opened.rec.disconnect()
+    opened.close()
     rec = Recording(out)
     rec.path = out
     return session, summary, rec
@@ -143,7 +143,7 @@ def test_depth_kind_layer_logs_classes_once_and_clears_only_after_a_shown_layer(
     for index, mask in enumerate([None, fine, fine, None, None, fine]):
         rerun_log.set_frame_time(opened.rec, index, index / 30)
         layer.log(opened.rec, rerun_log.depth_kind_ids(mask, 3))
-    opened.rec.disconnect()
+    opened.close()
     rec = Recording(out)
     assert rec.frames(KIND, "SegmentationImage:buffer") == [1, 2, 5]
     assert rec.frames(KIND, "Clear:is_recursive") == [3]

@@ -89,7 +89,7 @@ def view(session_dir: Path, out: Path, model=None, object_ids=None, **options):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the bad frame's warning (tested in test_viewer)
         summary = run_debugger(session, opened.rec, DebuggerOptions(**options), model=model)
-    opened.rec.disconnect()
+    opened.close()
     return session, summary, Recording(out)
 
 

@@ -391,25 +391,39 @@ def view(
     if model is None:
         typer.echo("no --model: the HMM posterior is not shown (make one with `contact-viz fit TRAIN... -o model.json`)")
     report = FrameReport()
+    from contact_viz.viz.sinks import SinkError
+
     try:
         with warnings.catch_warnings(record=True) as caught, _progress() as progress:
             warnings.simplefilter("always")
             task = progress.add_task(f"view {session.name}", total=None)
             summary = run_debugger(session, opened.rec, options, model=model,
                                    progress=lambda done, total: progress.update(task, completed=done, total=total))
+        if summary.frames and summary.bad_frames == summary.frames and not summary.interrupted:
+            opened.close(keep=False)
+            _fail(f"{session.root}: no frame could be read (see the warnings above); no recording written")
+        if serve:  # the served viewer keeps the data until Ctrl-C; the .rrd is renamed into place then
+            opened.flush()
+        else:
+            opened.close()  # the .rrd appears under its name only now, flushed and complete
+    except SinkError as exc:
+        opened.close(keep=False)
+        _fail(f"{opened.where}: {exc.strerror}")
     except (ValueError, IndexError) as exc:
+        opened.close(keep=False)
         _fail(str(exc))
+    except BaseException:
+        opened.close(keep=False)
+        raise
     report.add_warnings(caught)
     _print_report(report)
-    if summary.frames and summary.bad_frames == summary.frames and not summary.interrupted:
-        opened.rec.disconnect()  # closes the file sink before the file is removed
-        if save is not None:
-            save.unlink(missing_ok=True)
-        _fail(f"{session.root}: no frame could be read (see the warnings above); no recording written")
     for line in summary.lines():
         typer.echo(line)
     if save is not None:
         typer.echo(f"{save}: open it with `rerun {save}`")
+    if summary.interrupted:  # stopped by Ctrl-C, SIGTERM or SIGHUP: what was logged is kept, and said so
+        opened.close()
+        raise typer.Exit(code=128 + (summary.stop_signal or 2))
     if serve:
         import time
 
@@ -419,6 +433,7 @@ def view(
                 time.sleep(1)
         except KeyboardInterrupt:
             pass
+        opened.close()
 
 
 @app.command()
@@ -632,6 +647,7 @@ def main(argv: list[str] | None = None) -> None:
             args = args[1:]
         console.VERBOSE = True
     console.quiet_libraries(console.VERBOSE)  # before OpenCV, workers or Rerun start
+    console.stop_on_signals()  # SIGTERM and SIGHUP stop a command as Ctrl-C does
     commands = _commands()
     if args and not args[0].startswith("-") and args[0] not in commands:
         word = args[0]

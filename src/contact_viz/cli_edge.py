@@ -33,12 +33,21 @@ class EdgeGroup(TyperGroup):
             return super().invoke(ctx)
         except (typer.Exit, typer.Abort, typer.TyperException):  # usage errors, exits: typer prints them
             raise
-        except KeyboardInterrupt:
-            typer.secho("interrupted", err=True)
-            raise typer.Exit(code=130) from None
+        except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (console.stop_on_signals)
+            line, status = console.stop_line(exc)
+            _say(line)
+            raise typer.Exit(code=status) from None
         except Exception as exc:  # noqa: BLE001 - sorted by describe_error; bugs keep their traceback
             line = console.describe_error(exc)
             if line is None or console.VERBOSE:
                 raise
-            typer.secho(f"error: {line}", fg=typer.colors.RED, err=True)
+            _say(f"error: {line}", fg=typer.colors.RED)
             raise typer.Exit(code=2) from None
+
+
+def _say(line: str, **style) -> None:
+    """The one line on stderr; a terminal that has gone (SIGHUP, a closed pipe) does not turn it into a traceback."""
+    try:
+        typer.secho(line, err=True, **style)
+    except OSError:
+        pass

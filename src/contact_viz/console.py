@@ -10,7 +10,10 @@ Every `contact-viz` command reports bad input the same way:
   with one summary line, ``12 frames skipped: 10 empty depth, 2 unreadable masks``
   (:class:`FrameReport`);
 * library noise (OpenCV's ``[ WARN:0@...]`` lines, Rerun's Rust log) stays off the console
-  unless ``--verbose`` (:func:`quiet_libraries`).
+  unless ``--verbose`` (:func:`quiet_libraries`);
+* SIGTERM and SIGHUP (``kill``, ``timeout``, a job scheduler, a closed terminal) stop a command
+  as Ctrl-C does (:func:`stop_on_signals`): a :class:`Stopped` (a KeyboardInterrupt) unwinds it,
+  temporary files are removed, and the edge prints one line and exits with 128 + the signal.
 
 Output paths are checked before any work (:func:`check_output_file`), so a command that fails
 leaves nothing under its final name and prints no result first.
@@ -21,6 +24,7 @@ from __future__ import annotations
 import errno
 import os
 import re
+import signal
 import socket
 import tempfile
 import warnings
@@ -32,6 +36,8 @@ from pathlib import Path
 import numpy as np
 
 VERBOSE = False  # set by --verbose: tracebacks and library logs reach the console
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)  # each stops a command the way Ctrl-C does
 
 # What each errno means for the user, in the "PATH: what was expected" form.
 _ERRNO_TEXT = {
@@ -69,6 +75,37 @@ def quiet_libraries(verbose: bool = False) -> None:
             cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
         except AttributeError:  # very old OpenCV builds
             cv2.setLogLevel(2)
+
+
+class Stopped(KeyboardInterrupt):
+    """A command was stopped by a signal (SIGINT, SIGTERM or SIGHUP); every ``except
+    KeyboardInterrupt`` (a clean stop: flush, say what is partial) handles all three alike."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = int(signum)
+        super().__init__(signal.Signals(signum).name)
+
+
+def _raise_stopped(signum, frame) -> None:
+    raise Stopped(signum)
+
+
+def stop_on_signals() -> None:
+    """Make SIGTERM and SIGHUP (and SIGINT, to name it) raise :class:`Stopped` in the main thread.
+
+    Call once, in the main thread, before any work (the console script does)."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, _raise_stopped)
+
+
+def stop_line(exc: KeyboardInterrupt) -> tuple[str, int]:
+    """The one line and the exit status (128 + the signal) of a command stopped by ``exc``."""
+    signum = getattr(exc, "signum", signal.SIGINT)
+    if signum == signal.SIGINT:
+        return "interrupted (Ctrl-C)", 128 + signum
+    name = signal.Signals(signum).name
+    why = " (the terminal closed)" if signum == signal.SIGHUP else ""
+    return f"stopped by {name}{why}", 128 + signum
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:

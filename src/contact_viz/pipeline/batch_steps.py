@@ -97,7 +97,6 @@ def view_task(job: SessionJob, model_path: str | None) -> dict:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # bad frames are counted in the summary
             summary = run_debugger(session, opened.rec, DebuggerOptions(patch_params=job.params), model=model)
-        opened.rec.flush()
-        opened.rec.disconnect()
+        opened.close()
         data = path.read_bytes()
     return {"rrd": data, "lines": summary.lines(), "seconds": time.perf_counter() - start}

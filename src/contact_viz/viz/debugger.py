@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from contact_viz.viz import rerun_log
+from contact_viz.viz.sinks import flush
 from contact_viz.viz.diagnostics import DiagnosticParams, DiagnosticsTracker
 from contact_viz.console import FULL_MASK, no_patch_message, no_patch_problem
 from contact_viz.errors import NoPatchWarning, SessionError, SessionWarning
@@ -130,6 +131,7 @@ class RunSummary:
     contact_frames: dict[int, int] = field(default_factory=dict)  # with a model: object id -> frames it was in contact
     closest: tuple[int, float, int] | None = None  # (object id, distance mm, frame): the run's smallest |distance|
     with_model: bool = False  # the run had a model (contact_frames is meaningful)
+    stop_signal: int = 0  # the signal that stopped the run (SIGINT 2, SIGTERM 15, SIGHUP 1), 0 if none
 
     @property
     def nearest_instrument(self) -> int | None:
@@ -169,13 +171,22 @@ class RunSummary:
         return out
 
     @property
+    def stop_name(self) -> str:
+        """How the run was stopped early: "interrupted (Ctrl-C)", "stopped by SIGTERM" ..."""
+        import signal
+
+        if self.stop_signal in (0, signal.SIGINT):
+            return "interrupted (Ctrl-C)"
+        return f"stopped by {signal.Signals(self.stop_signal).name}"
+
+    @property
     def frames_per_s(self) -> float:
         return self.frames / self.elapsed_s if self.elapsed_s > 0 else math.nan
 
     def lines(self) -> list[str]:
         """A short human-readable report."""
         out = [f"{self.frames} frames in {self.elapsed_s:.1f} s ({self.frames_per_s:.1f} frames/s)"
-               + (", interrupted" if self.interrupted else "")]
+               + (f", {self.stop_name}: the recording is partial" if self.interrupted else "")]
         out.append(f"time: next frame {self.wait_s:.1f} s, images {self.image_wait_s:.1f} s, "
                    f"prepare {self.prepare_s:.1f} s, log {self.log_s:.1f} s")
         out += self.instrument_lines()
@@ -521,6 +532,7 @@ def run_debugger(
     done = bad = 0
     wait_s = image_wait_s = prepare_s = log_s = 0.0
     interrupted = False
+    stop_signal = 0
     try:
         while True:
             t0 = time.perf_counter()
@@ -603,7 +615,7 @@ def run_debugger(
                 rerun_log.log_kinematic_tip(rec, _kinematic_tip(session, frame, pose_of, options, K))
             done += 1
             if done % options.flush_every == 0:
-                rec.flush()
+                flush(rec)
             t4 = time.perf_counter()
             wait_s += t1 - t0
             image_wait_s += t2 - t1
@@ -611,8 +623,9 @@ def run_debugger(
             log_s += t4 - t3
             if progress is not None:
                 progress(done, len(indices))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (contact_viz.console.Stopped)
         interrupted = True
+        stop_signal = getattr(exc, "signum", 2)
     finally:
         results.close()
         images.close()
@@ -623,7 +636,7 @@ def run_debugger(
         if session_checks:
             last = indices[max(done - 1, 0)]
             rerun_log.log_session_diagnostics(rec, session_checks, float(session.timestamps_s[last]))
-        rec.flush()
+        flush(rec)
         log_s += time.perf_counter() - t5
     return RunSummary(
         frames=done,
@@ -631,6 +644,7 @@ def run_debugger(
         diagnostic_counts=dict(tracker.counts),
         diagnostic_ranges=tracker.ranges(),
         interrupted=interrupted,
+        stop_signal=stop_signal,
         elapsed_s=time.perf_counter() - started,
         wait_s=wait_s,
         image_wait_s=image_wait_s,

@@ -1,5 +1,5 @@
-"""What is logged to Rerun: the recording's sinks, static data and every frame (the default layout is in
-:mod:`contact_viz.viz.blueprint`, re-exported here).
+"""What is logged to Rerun: static data and every frame (the default layout is in
+:mod:`contact_viz.viz.blueprint`, the sinks in :mod:`contact_viz.viz.sinks`, both re-exported here).
 
 Everything here receives an explicit ``rr.RecordingStream`` and objects the pipeline already
 computed (the session, :class:`~contact_viz.pipeline.extract.FrameResult`, a :class:`FrameView` of
@@ -12,11 +12,8 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from urllib.parse import quote
 
 import numpy as np
 import rerun as rr
@@ -30,6 +27,8 @@ from contact_viz.io.session import BadFrame, Session
 from contact_viz.params import MM_PER_M
 from contact_viz.viz.blueprint import SCORE_CLIP, default_blueprint, depth_kind_legend  # noqa: F401 (re-exported)
 from contact_viz.viz.entities import *  # noqa: F403  (the entity paths, re-exported for scripts)
+from contact_viz.viz.sinks import (  # noqa: F401 (re-exported)
+    DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT, OpenedRecording, SinkError, open_recording)
 from contact_viz.viz.style import (
     DEPTH_COARSE,
     DEPTH_COLORMAP,
@@ -673,75 +672,3 @@ def log_bad_frame(
     if contact_text is not None:
         rec.log(ENTITY_CONTACT, rr.TextDocument(contact_text))
     _log_diagnostics(rec, diagnostics, ())
-
-
-# --------------------------------------------------------------------------------------------
-# Sinks
-# --------------------------------------------------------------------------------------------
-
-DEFAULT_GRPC_PORT = 9876  # Rerun's default gRPC port
-DEFAULT_WEB_PORT = 9090  # Rerun's default web viewer port
-
-
-@dataclass(frozen=True)
-class OpenedRecording:
-    """A recording stream and where it goes."""
-
-    rec: rr.RecordingStream
-    web_viewer_url: str | None  # with serve: open this in a browser (keep the process alive)
-    grpc_url: str | None  # with serve or spawn: the gRPC address viewers connect to
-
-
-def open_recording(
-    *,
-    save: str | Path | None = None,
-    connect: str | None = None,
-    spawn: bool = False,
-    serve: bool = False,
-    grpc_port: int = DEFAULT_GRPC_PORT,
-    web_port: int = DEFAULT_WEB_PORT,
-    blueprint=None,
-    recording_id: str | None = None,
-) -> OpenedRecording:
-    """A ``rr.RecordingStream`` that writes to every chosen sink (at least one).
-
-    save: an .rrd file (overwritten; readable up to the last flush if the run is interrupted).
-    connect: the gRPC URL of a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
-    spawn: start a native viewer (needs a display) on ``grpc_port`` and stream to it.
-    serve: host a gRPC server on ``grpc_port`` and a web viewer on ``web_port`` in this process.
-    ``blueprint`` (default: none) is sent to every sink as the default layout.
-    """
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-    sinks = []
-    web_url = grpc_url = None
-    if save is not None:
-        save = Path(save)
-        if save.suffix != ".rrd":
-            raise ValueError(f"save: expected a path ending in .rrd, got {str(save)!r}")
-        if not save.parent.is_dir():
-            raise ValueError(f"save: directory {str(save.parent)!r} does not exist")
-        sinks.append(rr.FileSink(save))
-    if spawn:
-        # The viewer binary ships with rerun-sdk beside this interpreter; PATH may not include it.
-        beside = Path(sys.executable).with_name("rerun")
-        try:
-            rr.spawn(port=grpc_port, connect=False, hide_welcome_screen=True, recording=rec,
-                     executable_path=str(beside) if beside.exists() else None)
-        except RuntimeError as exc:
-            raise ValueError(f"spawn: could not start the Rerun viewer ({str(exc).splitlines()[0]}); "
-                             "use --save out.rrd instead") from None
-        grpc_url = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
-        sinks.append(rr.GrpcSink(grpc_url))
-    if connect is not None:
-        sinks.append(rr.GrpcSink(connect))
-    if serve:
-        server = rr.GrpcServerSink(port=grpc_port)
-        sinks.append(server)
-        grpc_url = server.uri.replace("0.0.0.0", "127.0.0.1")  # the server binds every interface
-    if not sinks:
-        raise ValueError("open_recording: choose at least one sink (save, connect, spawn or serve)")
-    rec.set_sinks(*sinks, default_blueprint=blueprint)
-    if serve:
-        rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
-        web_url = f"http://localhost:{web_port}/?url={quote(grpc_url, safe='')}"
-    return OpenedRecording(rec=rec, web_viewer_url=web_url, grpc_url=grpc_url)
