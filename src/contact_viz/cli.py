@@ -99,7 +99,7 @@ def extract(
         output = output or Path("results") / session.name / "features.csv"
         check_output_file(output, "-o/--output", session_root=session.root, example="features.csv")
         check_output_file(output.with_name(output.name + ".json"), "-o/--output (its .json)")
-        with warnings.catch_warnings(record=True), _progress() as progress:
+        with warnings.catch_warnings(record=True) as caught, _progress() as progress:
             warnings.simplefilter("always", BadFrameWarning)  # the rows carry the same; reported below
             task = progress.add_task(f"extract {session.name}", total=len(session))
             try:
@@ -107,6 +107,11 @@ def extract(
                                         pool=pool)
             except WorkerError as exc:
                 _fail(str(exc))
+    from contact_viz.io.depth_cache import CacheWarning
+
+    for w in caught:  # a depth cache that filled up during the run: its one warning line
+        if issubclass(w.category, CacheWarning):
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     report = FrameReport.from_rows(rows, lambda layer, stem: session.layer_file(layer, stem))
     _print_report(report)
     bad = sum(1 for r in rows if r["reason"] == "bad_frame")
@@ -231,7 +236,10 @@ def evaluate(
         table = metrics_table(scores, model.threshold)
     except ValueError as exc:
         _fail(str(exc))
-    _write_evaluation(per_frame, json_out, scores, table, model, model_path)  # before anything is printed
+    from contact_viz.io.atomic import all_or_nothing
+
+    with all_or_nothing():  # both outputs or neither (e.g. a full disk under --json)
+        _write_evaluation(per_frame, json_out, scores, table, model, model_path)  # before anything is printed
     typer.echo(format_table(table, style="text"))
     for note in [n for row in table.values() for n in row.get("notes", [])]:
         typer.echo(f"note: {note}")
@@ -407,8 +415,9 @@ def view(
         else:
             opened.close()  # the .rrd appears under its name only now, flushed and complete
     except SinkError as exc:
+        error = opened.explain(exc)  # before the staging file is removed (its size tells a full disk)
         opened.close(keep=False)
-        _fail(f"{opened.where}: {exc.strerror}")
+        _fail(f"{error.filename}: {error.strerror}")
     except (ValueError, IndexError) as exc:
         opened.close(keep=False)
         _fail(str(exc))
@@ -658,7 +667,18 @@ def main(argv: list[str] | None = None) -> None:
                         "`contact-viz SESSION` opens the viewer on a session directory", fg=typer.colors.RED, err=True)
             raise SystemExit(2)
         args.insert(0, "view")
-    app(args=args, prog_name="contact-viz")
+    try:
+        app(args=args, prog_name="contact-viz")
+    except SystemExit as exc:
+        sinks = sys.modules.get("contact_viz.viz.sinks")
+        if sinks is not None and sinks.exit_would_hang():  # a viewer that stopped taking data: leave now
+            import os
+
+            code = exc.code if isinstance(exc.code, int) else 1
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+        raise
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ import os
 import re
 import signal
 import socket
-import tempfile
 import warnings
 from collections import Counter
 from collections.abc import Iterable, Sequence
@@ -34,6 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from contact_viz.io.atomic import staging_path
 
 VERBOSE = False  # set by --verbose: tracebacks and library logs reach the console
 
@@ -165,8 +166,10 @@ def check_output_file(path: Path, option: str, *, session_root: Path | None = No
     parent = path.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=parent, prefix=f".{path.name}.", suffix=".probe"):
+        probe = staging_path(path, "probe")  # a name the next run sweeps if this one is killed right here
+        with open(probe, "x"):
             pass
+        probe.unlink()
     except OSError as exc:
         raise OutputError(f"{path}: {option}: cannot write here ({exc.strerror or exc}); expected a path in a "
                           "writable directory") from None
@@ -190,7 +193,9 @@ def check_output_dir(path: Path, option: str) -> Path:
     parent = path.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
-        tempfile.TemporaryDirectory(dir=parent, prefix=f".{path.name}.", suffix=".probe").cleanup()
+        probe = staging_path(path, "probe")
+        probe.mkdir()
+        probe.rmdir()
     except OSError as exc:
         raise OutputError(f"{path}: {option}: cannot make a directory here ({exc.strerror or exc}); expected a "
                           "path in a writable directory") from None

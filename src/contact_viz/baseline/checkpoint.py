@@ -3,6 +3,7 @@ checked against the run they are meant to resume."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
@@ -14,8 +15,10 @@ from contact_viz.params import to_dict as _params_to_dict
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
     import torch
 
+    buffer = io.BytesIO()  # torch.save into a real file turns a full disk into a RuntimeError
+    torch.save(payload, buffer)
     with atomic_write(path, "wb") as handle:
-        torch.save(payload, handle)
+        handle.write(buffer.getbuffer())
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import os
+import warnings
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +15,7 @@ import numpy as np
 
 from contact_viz.baseline.params import CONTACT, NO_CONTACT, UNKNOWN_LABEL
 from contact_viz.geometry.tooltip import TipParams, crop_centered, tool_tip_xy
-from contact_viz.io.atomic import atomic_write
+from contact_viz.io.atomic import atomic_write, staging_path, sweep_stale
 from contact_viz.params import to_dict as _params_to_dict
 
 
@@ -63,6 +66,48 @@ def _crop_cache_paths(session: Any, crop_px: int, tip_params: TipParams, cache_d
     return crops_path, crops_path.with_suffix(".meta.npz")
 
 
+def _load_cached(crops_path: Path, meta_path: Path, shape: tuple[int, ...]):
+    """(crops as a read-only memory map, the SessionCrops fields of the meta file) of a cache entry, or
+    None if absent or not whole (a file cut short by a crash on a filesystem without atomic rename)."""
+    if not (crops_path.is_file() and meta_path.is_file()):
+        return None
+    try:
+        crops = np.load(crops_path, mmap_mode="r")
+        with np.load(meta_path) as meta:
+            fields = {k: meta[k] for k in ("center_xy", "center_source", "readable")}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):  # not whole: computed again
+        return None
+    if crops.shape != shape or crops.dtype != np.uint8 or any(len(v) != shape[0] for v in fields.values()):
+        return None
+    return crops, fields
+
+
+def _cache_warning(crops_path: Path, exc: OSError) -> None:
+    from contact_viz.io.atomic import os_reason
+
+    warnings.warn(f"{crops_path.parent}: could not write the crops cache ({os_reason(exc)}); the crops are held "
+                  "in memory", stacklevel=3)
+
+
+def _staged_memmap(path: Path, shape: tuple[int, ...]) -> np.memmap:
+    """A new ``.npy`` memory map at ``path`` whose blocks are allocated up front: on a full disk that is
+    an OSError now, where writing through the map into a sparse file would kill the process (SIGBUS)."""
+    try:
+        crops = np.lib.format.open_memmap(path, mode="w+", dtype=np.uint8, shape=shape)
+        fd = os.open(path, os.O_RDWR)
+        try:
+            os.posix_fallocate(fd, 0, os.fstat(fd).st_size)
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):  # no fallocate here: as before
+                raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        finally:
+            os.close(fd)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    return crops
+
+
 def extract_crops(
     session: Any,
     crop_px: int,
@@ -82,24 +127,24 @@ def extract_crops(
     n_frames = len(session)
     height, width = session.image_size
     labels = np.array(session.labels, dtype=np.int8)
+    shape = (n_frames, crop_px, crop_px, 3)
+    staged = None  # the staging .npy the crops are written into, when they are cached
     if cache_dir is not None:
         crops_path, meta_path = _crop_cache_paths(session, crop_px, tip_params, Path(cache_dir))
-        if crops_path.is_file() and meta_path.is_file():
-            crops = np.load(crops_path, mmap_mode="r")
-            with np.load(meta_path) as meta:
-                return SessionCrops(
-                    name=session.name,
-                    crops=crops,
-                    labels=labels,
-                    center_xy=meta["center_xy"],
-                    center_source=meta["center_source"],
-                    readable=meta["readable"],
-                )
-        crops_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp_path = crops_path.with_name(f".{crops_path.name}.{os.getpid()}.tmp.npy")
-        crops = np.lib.format.open_memmap(tmp_path, mode="w+", dtype=np.uint8, shape=(n_frames, crop_px, crop_px, 3))
-    else:
-        crops = np.zeros((n_frames, crop_px, crop_px, 3), dtype=np.uint8)
+        cached = _load_cached(crops_path, meta_path, shape)
+        if cached is not None:
+            crops, meta = cached
+            return SessionCrops(name=session.name, crops=crops, labels=labels, **meta)
+        try:
+            crops_path.parent.mkdir(parents=True, exist_ok=True)
+            sweep_stale(crops_path)  # the staging file of a killed run
+            staged = staging_path(crops_path, "tmp.npy")
+            crops = _staged_memmap(staged, shape)
+        except OSError as exc:  # a full disk, a read-only cache: the crops are held in memory
+            _cache_warning(crops_path, exc)
+            staged = None
+    if staged is None:
+        crops = np.zeros(shape, dtype=np.uint8)
     center_xy = np.empty((n_frames, 2), dtype=np.float64)
     center_source = np.empty(n_frames, dtype=np.uint8)
     readable = np.ones(n_frames, dtype=bool)
@@ -131,16 +176,21 @@ def extract_crops(
                     crops[i] = crops[i - 1]  # hold the previous crop (zeros before the first readable frame)
             if progress is not None:
                 progress(i + 1, n_frames)
-        if cache_dir is not None:
-            crops.flush()
-            del crops
-            with atomic_write(meta_path, "wb") as handle:
-                np.savez(handle, center_xy=center_xy, center_source=center_source, readable=readable)
-            os.replace(tmp_path, crops_path)  # the crops file appears last: both present = complete
-            crops = np.load(crops_path, mmap_mode="r")
+        if staged is not None:
+            try:
+                crops.flush()
+                with atomic_write(meta_path, "wb") as handle:
+                    np.savez(handle, center_xy=center_xy, center_source=center_source, readable=readable)
+                os.replace(staged, crops_path)  # the crops file appears last: both present = complete
+                del crops
+                crops = np.load(crops_path, mmap_mode="r")
+            except OSError as exc:  # the crops computed are right: keep them in memory
+                _cache_warning(crops_path, exc)
+                crops = np.array(crops)
+                staged.unlink(missing_ok=True)
     except BaseException:
-        if cache_dir is not None:
-            tmp_path.unlink(missing_ok=True)
+        if staged is not None:
+            staged.unlink(missing_ok=True)
         raise
     return SessionCrops(
         name=session.name,

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
+import os
+import sys
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -18,7 +21,7 @@ import cv2
 import numpy as np
 
 from contact_viz import __version__
-from contact_viz.io.atomic import atomic_write
+from contact_viz.io.atomic import atomic_write, os_reason, staging_path, sweep_stale_in
 
 from contact_viz.geometry.stereo import SUBPIXEL, SGBMParams, sgbm_disparity
 from contact_viz.geometry.stereo_region import region_sgbm_disparity
@@ -52,19 +55,53 @@ def _decode(code: np.ndarray, p: SGBMParams) -> np.ndarray:
     return disparity
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the IEND chunk: length 0, type, CRC
+
+
+def read_entry(path: Path) -> np.ndarray | None:
+    """The uint16 (H, W) code of a cache entry, or None if it is absent or not a whole PNG.
+
+    Entries are renamed into place only once written and fsynced, but a filesystem without atomic
+    rename, or a crash before the data reached the disk, can leave a file cut short or zero-filled:
+    such a file lacks the PNG signature or the IEND chunk that ends every whole PNG, and a wrong byte
+    inside fails the CRC of its chunk or the zlib checksum of the image data (libpng refuses both)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    if len(data) < len(_PNG_SIGNATURE) + len(_PNG_END) or not data.startswith(_PNG_SIGNATURE) \
+            or not data.endswith(_PNG_END):
+        return None
+    code = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if code is None or code.dtype != np.uint16 or code.ndim != 2:
+        return None
+    return code
+
+
 class DisparityCache:
     """Per-frame SGBM disparities of one session, stored outside the session directory.
 
     Entries live in ``<cache_dir>/sgbm/<session name>-<key>/`` where the key hashes the package
     version, the session's absolute path, the name, size and mtime of each calibration file and
     the resolved parameters; each frame's file name adds a hash of its left and right images'
-    size and mtime. Writes are atomic, so concurrent readers never see half a file.
+    size and mtime. Writes are atomic, so concurrent readers never see half a file; an entry that
+    is not a whole PNG (a torn write on a filesystem without atomic rename, a crash before the data
+    reached the disk) is never used, but computed and written again (:func:`read_entry`).
     ``directory=None`` disables storage (every read recomputes).
+
+    A cache that cannot be written (a full disk, a read-only place) is one warning, and every entry
+    missing from it is computed on each read; :meth:`for_session` finds out when the session is
+    opened (:meth:`probe`), so that worker processes given the opened session do not each warn.
     """
+
+    PROBE_BYTES = 64 * 1024  # written and removed by probe(): the size of a small entry
 
     def __init__(self, directory: Path | None, params: SGBMParams) -> None:
         self.directory = directory
         self.params = params
+        self.writable = directory is not None
+        self.problem: OSError | None = None  # why the cache cannot be written (probe), as an error about the folder
         self._warned = False
 
     @classmethod
@@ -89,7 +126,45 @@ class DisparityCache:
             sort_keys=True,
         )
         key = hashlib.sha256(payload.encode()).hexdigest()[:24]
-        return cls(base / "sgbm" / f"{root.name}-{key}", params)
+        cache = cls(base / "sgbm" / f"{root.name}-{key}", params)
+        cache.probe()
+        return cache
+
+    def probe(self) -> bool:
+        """Whether the cache folder takes new entries: make it, remove the staging files of dead
+        processes (killed while writing an entry), write and remove a small file. If not, warn once;
+        entries already there are still read. Returns ``self.writable``."""
+        if self.directory is None:
+            return False
+        probe = staging_path(self.directory / "probe", "probe")
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            sweep_stale_in(self.directory)
+            fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            try:
+                written = 0
+                while written < self.PROBE_BYTES:
+                    written += os.write(fd, bytes(self.PROBE_BYTES - written))
+            finally:
+                os.close(fd)
+                probe.unlink(missing_ok=True)
+        except OSError as exc:
+            self.writable = False
+            self.problem = OSError(exc.errno, exc.strerror, str(self.directory)) if exc.errno else exc
+            self._warn(exc)
+        return self.writable
+
+    def _warn(self, exc: OSError) -> None:
+        """Once per cache object: ``DIR: could not write the depth cache (what went wrong); ...``."""
+        if self._warned:
+            return
+        self._warned = True
+        message = (f"{self.directory}: could not write the depth cache ({os_reason(exc)}); depth missing from "
+                   "it is computed on every read")
+        if multiprocessing.parent_process() is not None:  # a worker: one line, as the command's own warnings
+            print(f"warning: {message}", file=sys.stderr, flush=True)
+        else:
+            warnings.warn(message, CacheWarning, stacklevel=3)
 
     def path(self, stem: str, left_path: Path, right_path: Path, mask_key: list | None = None) -> Path | None:
         """Where frame ``stem``'s disparity lives (None when caching is off).
@@ -106,28 +181,24 @@ class DisparityCache:
 
     def load(self, path: Path | None) -> np.ndarray | None:
         """The cached disparity (H, W) float32 px (NaN invalid), or None if absent or unreadable."""
-        if path is None or not path.is_file():
+        if path is None:
             return None
-        code = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if code is None or code.dtype != np.uint16 or code.ndim != 2:
-            return None
-        return _decode(code, self.params)
+        code = read_entry(path)
+        return None if code is None else _decode(code, self.params)
 
     def save(self, path: Path | None, disparity: np.ndarray) -> None:
         """Store a disparity atomically; a failure only warns (once) and disables nothing else."""
-        if path is None:
+        if path is None or not self.writable:
             return
         ok, data = cv2.imencode(".png", _encode(disparity, self.params), [cv2.IMWRITE_PNG_COMPRESSION, 1])
         try:
             if not ok:
                 raise OSError("PNG encoding failed")
-            with atomic_write(path, "wb") as handle:
+            # The folder's dead staging files were swept by probe(): one listing per run, not per entry.
+            with atomic_write(path, "wb", sweep=False) as handle:
                 handle.write(data.tobytes())
         except OSError as exc:
-            if not self._warned:
-                self._warned = True
-                warnings.warn(f"{path.parent}: could not write the depth cache ({exc}); depth is recomputed "
-                              "on every read", CacheWarning, stacklevel=2)
+            self._warn(exc)
 
     def disparity(
         self,

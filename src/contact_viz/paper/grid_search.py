@@ -13,6 +13,7 @@ runs it as a step of the study (:func:`run_grid_search`).
 
 from __future__ import annotations
 
+import io
 import logging
 import warnings
 from collections.abc import Sequence
@@ -71,6 +72,15 @@ def grid_chunk_task(session_dir: str, grid: list[PatchParams], lo: int, hi: int)
     return out, bad
 
 
+def _load_cached(path: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    """A cached (T, G) distance array, or None if absent, unreadable or not whole (a torn write)."""
+    try:
+        array = np.load(path)
+    except (OSError, ValueError, EOFError):
+        return None
+    return array if array.shape == shape and array.dtype == np.float64 else None
+
+
 def session_distances(sessions: Sequence[Path], grid: list[PatchParams], cache_dir, engine, progress: Progress):
     """Per session: (name, (T, G) distances in m for every frame and grid point, labels (T,)).
 
@@ -79,7 +89,11 @@ def session_distances(sessions: Sequence[Path], grid: list[PatchParams], cache_d
     opened = [open_session(s) for s in sessions]
     key = {"grid": [to_dict(p) for p in grid]}
     paths = [cache_path(session.root, "grid", key, ".npy", cache_dir) for session in opened]
-    distances = {i: np.load(path) for i, path in enumerate(paths) if path.exists()}
+    distances = {}
+    for i, path in enumerate(paths):
+        cached = _load_cached(path, (len(opened[i]), len(grid)))
+        if cached is not None:
+            distances[i] = cached
     calls, owners = [], []
     for i, session in enumerate(opened):
         if i not in distances:
@@ -98,9 +112,16 @@ def session_distances(sessions: Sequence[Path], grid: list[PatchParams], cache_d
             warnings.warn(message, BadFrameWarning, stacklevel=1)
         progress.advance(task, block.shape[0])
     for i in {i for i, _ in owners}:
-        paths[i].parent.mkdir(parents=True, exist_ok=True)
-        with atomic_write(paths[i], "wb") as handle:
-            np.save(handle, distances[i])
+        buffer = io.BytesIO()  # np.save into a real file reports a full disk without its errno
+        np.save(buffer, distances[i])
+        try:
+            with atomic_write(paths[i], "wb") as handle:
+                handle.write(buffer.getbuffer())
+        except OSError as exc:  # a full disk, a read-only cache: the distances are still right
+            from contact_viz.io.atomic import os_reason
+
+            warnings.warn(f"{paths[i].parent}: could not write the grid cache ({os_reason(exc)}); the distances "
+                          "are computed again on every run", stacklevel=2)
     return [(session.name, distances[i], np.asarray(session.labels)) for i, session in enumerate(opened)]
 
 

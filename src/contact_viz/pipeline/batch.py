@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -28,7 +29,7 @@ from pathlib import Path
 
 from contact_viz import __version__
 from contact_viz.errors import SessionError
-from contact_viz.io.atomic import atomic_write
+from contact_viz.io.atomic import all_or_nothing, atomic_write
 from contact_viz.io.cache import cache_key
 from contact_viz.io.jsonfile import read_json, write_json
 from contact_viz.params import LabelParams, PatchParams, to_dict
@@ -188,10 +189,39 @@ def run_batch(
     engine,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> BatchSummary:
-    """Run ``options.steps`` over every session of ``source`` into ``out`` on ``engine``."""
+    """Run ``options.steps`` over every session of ``source`` into ``out`` on ``engine``.
+
+    Stopped by an error (a full disk: an OSError naming the file) or interrupted, the files of the
+    steps already finished stay (each complete, written atomically; a re-run reuses them) and the
+    folders this run made that hold nothing are removed, ``out`` too if it is empty and was new."""
+    out = Path(out).expanduser().resolve()
+    before = _folders(out)
+    try:
+        return _run_batch(source, out, options, engine, progress)
+    except BaseException:
+        _remove_new_empty_folders(out, before)
+        raise
+
+
+def _folders(top: Path) -> set[str]:
+    """``top`` and every folder under it (empty when ``top`` does not exist)."""
+    return {dirpath for dirpath, _, _ in os.walk(top)} if top.is_dir() else set()
+
+
+def _remove_new_empty_folders(top: Path, before: set[str]) -> None:
+    """Remove the folders under ``top`` (``top`` included) that are empty and not in ``before``, deepest first."""
+    for dirpath, _, _ in os.walk(top, topdown=False):
+        if dirpath not in before:
+            try:
+                os.rmdir(dirpath)  # only succeeds when empty
+            except OSError:
+                pass
+
+
+def _run_batch(source: str | Path, out: Path, options: BatchOptions, engine,
+               progress: Callable[[int, int, str], None] | None) -> BatchSummary:
     from contact_viz.io.session import open_session
 
-    out = Path(out).expanduser().resolve()
     paths = find_sessions(source)
     for path in paths:
         if out == path or path in out.parents:
@@ -300,10 +330,11 @@ def run_batch(
 
                 rows = [row for part in parts for row in part["rows"]]
                 _count_rows(outcome, rows)
-                with atomic_write(folder / "features.csv", newline="") as handle:
-                    handle.write(_features_csv(rows))
-                write_json(folder / "features.csv.json",
-                           run_config(sessions[name], patch_params=options.params, label_params=options.label_params))
+                with all_or_nothing():  # the .json first, the CSV last, or neither
+                    write_json(folder / "features.csv.json", run_config(
+                        sessions[name], patch_params=options.params, label_params=options.label_params))
+                    with atomic_write(folder / "features.csv", newline="") as handle:
+                        handle.write(_features_csv(rows))
                 outcome.steps[step] = "done"
             elif step == "check":
                 _count_checks(outcome, parts[0]["report"])

@@ -17,7 +17,7 @@ import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
-from contact_viz.io.atomic import atomic_write
+from contact_viz.io.atomic import all_or_nothing, atomic_write
 from contact_viz.io.jsonfile import write_json
 from contact_viz.model.evaluation import metrics_table, per_frame_columns, per_frame_rows
 from contact_viz.params import to_dict
@@ -85,12 +85,13 @@ def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: C
             if not scores:
                 raise ValueError("evaluate: no session has features (run the extract step too)")
             table = metrics_table(scores, threshold)
-            with atomic_write(out / "per_frame.csv", newline="") as handle:
-                writer = csv.DictWriter(handle, fieldnames=per_frame_columns(scores))
-                writer.writeheader()
-                writer.writerows(per_frame_rows(scores))
-            write_json(out / "metrics.json", {"scored": how, "threshold": threshold,
-                                              "patch_params": to_dict(options.params), "metrics": table})
+            with all_or_nothing():  # both files or neither (a full disk on the second)
+                with atomic_write(out / "per_frame.csv", newline="") as handle:
+                    writer = csv.DictWriter(handle, fieldnames=per_frame_columns(scores))
+                    writer.writeheader()
+                    writer.writerows(per_frame_rows(scores))
+                write_json(out / "metrics.json", {"scored": how, "threshold": threshold,
+                                                  "patch_params": to_dict(options.params), "metrics": table})
             summary.metrics = table
             summary.dataset["evaluate"] = f"done: {len(scores)} sessions, {how}"
         except ValueError as exc:

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import shutil
 import time
+import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -12,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from contact_viz.errors import SessionError
+from contact_viz.io.atomic import reported_as, staging_path, sweep_stale
 
 from contact_viz.geometry.stereo import DEPTH_METHODS, SGBMParams
 
@@ -55,6 +60,15 @@ class DepthRunSummary:
         return out
 
 
+def _write_npy(path: Path, array: np.ndarray) -> None:
+    """``np.save`` through an ordinary write, so that a full disk is an OSError with its errno (NumPy's own
+    file writing reports only "N requested and M written")."""
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    with open(path, "wb") as handle:
+        handle.write(buffer.getbuffer())
+
+
 def precompute_depth(
     session,
     *,
@@ -80,9 +94,11 @@ def precompute_depth(
                              "choose another output folder")
         if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
             raise ValueError(f"{out_dir}: expected a new or empty folder for the depth files")
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        tmp_dir = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}-{time.monotonic_ns()}"
-        tmp_dir.mkdir()
+        with reported_as(out_dir):
+            out_dir.parent.mkdir(parents=True, exist_ok=True)
+            sweep_stale(out_dir)  # what a killed run left
+            tmp_dir = staging_path(out_dir, "partial")
+            tmp_dir.mkdir()
 
     total = len(session)
     failed: list[str] = []
@@ -94,7 +110,8 @@ def precompute_depth(
         return index, session.load_depth(index, with_origin=True)
 
     try:
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="contact-viz-depth") as pool:
+        with reported_as(out_dir, tmp_dir) if tmp_dir is not None else contextlib.nullcontext(), \
+                ThreadPoolExecutor(max_workers=workers, thread_name_prefix="contact-viz-depth") as pool:
             done = 0
             for index, result in pool.map(one, range(total)):
                 stem = session.stems[index]
@@ -105,20 +122,18 @@ def precompute_depth(
                     counts[origin] = counts.get(origin, 0) + 1
                     valid_sum += float(np.isfinite(depth_m).mean())
                     if tmp_dir is not None:
-                        np.save(tmp_dir / f"{stem}.npy", depth_m)
+                        _write_npy(tmp_dir / f"{stem}.npy", depth_m)
                 done += 1
                 if progress is not None:
                     progress(done, total)
-        if tmp_dir is not None:
-            if out_dir.exists():
-                out_dir.rmdir()
-            os.replace(tmp_dir, out_dir)
-            tmp_dir = None
+            if tmp_dir is not None:
+                if out_dir.exists():
+                    out_dir.rmdir()
+                os.replace(tmp_dir, out_dir)
+                tmp_dir = None
     finally:
         if tmp_dir is not None:
-            for child in tmp_dir.iterdir():
-                child.unlink()
-            tmp_dir.rmdir()
+            shutil.rmtree(tmp_dir, ignore_errors=True)
     handled = total - len(failed)
     return DepthRunSummary(
         session=session.name,
@@ -153,8 +168,15 @@ def run_depth_command(
 
     if method not in DEPTH_METHODS:
         raise ValueError(f"--method must be one of {', '.join(DEPTH_METHODS)}, got {method!r}")
-    session = open_session(session_dir, cache_dir=cache_dir, depth_method=method, sgbm_params=params,
-                           require_masks=False)
+    with warnings.catch_warnings(record=True) as caught:  # a cache that cannot be written: see below
+        warnings.simplefilter("always")
+        session = open_session(session_dir, cache_dir=cache_dir, depth_method=method, sgbm_params=params,
+                               require_masks=False)
+    problem = getattr(getattr(session, "_sgbm", None), "problem", None)
+    if problem is not None and output is None:  # filling the cache is all this command would do: an error
+        raise problem
+    for w in caught:  # otherwise (depth files written to -o) the warnings, as they came
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     summary = precompute_depth(session, output=output, workers=workers, progress=progress)
     lines = [session.depth_note] + summary.lines()
     if summary.frames and len(summary.failed) == summary.frames:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from contact_viz import __version__
-from contact_viz.io.atomic import atomic_write
+from contact_viz.io.atomic import all_or_nothing, atomic_write
 from contact_viz.io.jsonfile import read_json, write_json
 from contact_viz.params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
 from contact_viz.geometry.instruments import instrument_ids, instrument_patches
@@ -281,14 +281,16 @@ def run_config(session: Session, **sections: object) -> dict[str, object]:
 
 
 def write_features(rows: Sequence[dict[str, object]], path: str | Path, config: dict[str, object]) -> Path:
-    """Write ``rows`` to ``path`` (CSV) and ``config`` to ``<path>.json``, each atomically."""
+    """Write ``rows`` to ``path`` (CSV) and ``config`` to ``<path>.json``, atomically and together: the
+    ``.json`` is renamed into place first and the CSV last, and if either cannot be written (a full
+    disk) neither appears."""
     path = Path(path)
-    with atomic_write(path, newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=feature_columns(rows), extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-    config_path = path.with_name(path.name + ".json")
-    write_json(config_path, config)
+    with all_or_nothing():
+        write_json(path.with_name(path.name + ".json"), config)
+        with atomic_write(path, newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=feature_columns(rows), extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
     return path
 
 
@@ -339,11 +341,34 @@ def cached_features(
     key = {"patch_params": to_dict(params), "label_params": to_dict(label_params), "object_ids": session.object_ids,
            "depth": session.depth_config}
     path = cache_path(session.root, "features", key, ".csv", cache_dir)
-    if path.exists():
-        return read_features(path), True
+    cached = _read_cached_features(path, session)
+    if cached is not None:
+        return cached, True
     rows = extract_features(session, params, progress=progress, processes=processes)
-    write_features(rows, path, run_config(session, patch_params=params, label_params=label_params))
+    try:
+        write_features(rows, path, run_config(session, patch_params=params, label_params=label_params))
+    except OSError as exc:  # a full disk, a read-only cache: the features are still right
+        from contact_viz.io.atomic import os_reason
+        from contact_viz.io.depth_cache import CacheWarning
+
+        warnings.warn(f"{path.parent}: could not write the features cache ({os_reason(exc)}); the features are "
+                      "computed again on every run", CacheWarning, stacklevel=2)
     return [{k: str(v) for k, v in r.items()} for r in rows], False
+
+
+def _read_cached_features(path: Path, session: Session) -> list[dict[str, str]] | None:
+    """The rows of a features cache entry, or None if it is absent or not whole: every frame of the
+    session present and every row complete (an entry cut short by a crash on a filesystem without
+    atomic rename is computed and written again, never used)."""
+    try:
+        rows = read_features(path)
+    except (OSError, ValueError, csv.Error, UnicodeDecodeError):
+        return None
+    if any(None in row or None in row.values() for row in rows):  # a row cut short, or one too long
+        return None
+    if {row["frame"] for row in rows} != set(session.stems):
+        return None
+    return rows
 
 
 def feature_arrays(rows: Sequence[dict[str, object]]) -> tuple[np.ndarray, np.ndarray]:

@@ -33,23 +33,36 @@ nobody waits for a worker still starting up. Both ``map`` calls call
 ``progress(n)`` in the caller with the number of items done so far.
 An exception raised by ``fn``/``task`` in a worker is raised again in the caller, as it is
 (its worker-side traceback is its ``__cause__``), exactly as with ``processes=1``; a worker
-that dies (killed, out of memory) raises :class:`WorkerError`. Either way, and on Ctrl-C
-(workers ignore SIGINT and leave it to the caller), the jobs not started are cancelled and
-the pool's processes have exited when the ``with`` block is left. As with any spawned
-process, a script using a pool at import time needs an ``if __name__ == "__main__":`` guard.
+that dies (killed, out of memory) raises :class:`WorkerError`. Either way, and on Ctrl-C,
+SIGTERM or SIGHUP (workers ignore all three and leave them to the caller, so a signal sent to
+the whole process group stops the command, not a worker), the jobs not started are cancelled
+and the pool's processes have exited when the ``with`` block is left: a worker still busy
+``STOP_GRACE_S`` after that is killed, so closing never waits long.
+
+Workers never outlive the process that started them, even when it is killed with SIGKILL: on
+Linux the kernel kills them (``PR_SET_PDEATHSIG``); everywhere, each worker checks its parent
+every ``WATCH_INTERVAL_S`` and exits when it is gone. As with any spawned process, a script
+using a pool at import time needs an ``if __name__ == "__main__":`` guard.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
+import ctypes
 import importlib
 import multiprocessing
 import os
 import pickle
 import signal
+import sys
+import threading
+import time
 import uuid
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures.process import BrokenProcessPool
+from multiprocessing import resource_tracker
+from multiprocessing.connection import wait as wait_ready
 from typing import Any, Protocol, TypeVar
 
 T = TypeVar("T")
@@ -57,6 +70,14 @@ R = TypeVar("R")
 
 _USABLE_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 DEFAULT_PROCESSES = min(8, _USABLE_CORES)  # processes sharing the work, the caller included (one per core, at most 8)
+STOP_GRACE_S = 1.0  # closing: how long a worker may take to finish its job (or start-up) and exit before it is killed
+EXIT_TIMEOUT_S = 5.0  # closing: the longest wait for a killed worker to be gone
+WATCH_INTERVAL_S = 0.5  # in a worker: how often it checks that its parent is alive
+
+# concurrent.futures (3.11) does nothing when the parent dies: its workers then wait for jobs forever.
+_PR_SET_PDEATHSIG = 1  # prctl option (linux/prctl.h): the signal this process gets when its parent thread exits
+_STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+_HAVE_SIGMASK = hasattr(signal, "pthread_sigmask")
 
 
 class ChunkTask(Protocol):
@@ -78,9 +99,50 @@ def chunk_bounds(n_items: int, chunk_size: int) -> list[tuple[int, int]]:
     return [(lo, min(lo + chunk_size, n_items)) for lo in range(0, n_items, chunk_size)]
 
 
-def _start_worker(initializer: Callable[[], object] | None, preload: Sequence[str]) -> None:
-    """First thing in each worker: leave Ctrl-C to the caller, run ``initializer``, import ``preload``."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+class _Parent:
+    """The process starting a worker, as the worker sees it: its pid, and whether the thread
+    starting the worker is its main thread. Pickled for each worker as it is started, in the
+    thread starting it (the spawn method pickles the initializer's arguments in Process.start):
+    the executor does that in ``submit`` (here: in ``ProcessPool()``), or in its manager thread
+    when it replaces a worker (only with ``max_tasks_per_child``, not used here)."""
+
+    def __getstate__(self) -> tuple[int, bool]:
+        return os.getpid(), threading.current_thread() is threading.main_thread()
+
+    def __setstate__(self, state: tuple[int, bool]) -> None:
+        self.pid, self.main_thread = state
+
+
+def _die_with_parent(parent: _Parent) -> None:
+    """Make this worker end when its parent does (even by SIGKILL), at once if it already has."""
+    if sys.platform.startswith("linux") and parent.main_thread:
+        # The kernel sends the signal when the *thread* that started this process exits, so only
+        # when that is the parent's main thread, which lasts as long as the process.
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, ctypes.c_ulong(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):  # no prctl: the watch below does it
+            pass
+    if os.getppid() != parent.pid:  # the parent died before that (this process now belongs to init)
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent.pid,), name="contact-viz-watch-parent", daemon=True).start()
+
+
+def _watch_parent(pid: int) -> None:
+    """In a worker: exit as soon as the parent ``pid`` is gone (where the kernel does not do it,
+    or when the parent thread that started this worker was not its main thread)."""
+    while os.getppid() == pid:
+        time.sleep(WATCH_INTERVAL_S)
+    os._exit(1)
+
+
+def _start_worker(parent: _Parent, initializer: Callable[[], object] | None, preload: Sequence[str]) -> None:
+    """First thing in each worker: end with the parent, leave Ctrl-C, SIGTERM and SIGHUP to it
+    (they were blocked since this process started), run ``initializer``, import ``preload``."""
+    _die_with_parent(parent)
+    for signum in _STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+    if _HAVE_SIGMASK:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     if initializer is not None:
         initializer()
     for module in preload:
@@ -89,6 +151,25 @@ def _start_worker(initializer: Callable[[], object] | None, preload: Sequence[st
 
 def _started() -> None:
     """A no-op job: submitting one per worker makes the executor start them all now."""
+
+
+@contextlib.contextmanager
+def _stop_signals_blocked() -> Iterator[None]:
+    """SIGINT, SIGTERM and SIGHUP blocked in this thread meanwhile, so that the processes it starts
+    begin with them blocked (the mask is inherited): a signal sent to the whole process group
+    cannot kill a worker before it ignores them, nor multiprocessing's resource tracker (started
+    here if it is not running; it ignores SIGINT and SIGTERM only). A signal that comes
+    meanwhile reaches this process when the block ends."""
+    if not _HAVE_SIGMASK:
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    try:
+        resource_tracker.ensure_running()  # it unblocks SIGINT and SIGTERM once the tracker has started
+        signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 _SHARED: dict[str, Any] = {}  # in a worker: the functions of the jobs it has seen, unpickled once each
@@ -145,11 +226,16 @@ class ProcessPool:
         self.processes = processes
         self._executor: cf.ProcessPoolExecutor | None = None
         if processes > 1:
-            self._executor = cf.ProcessPoolExecutor(
-                processes - 1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_start_worker, initargs=(initializer, tuple(preload)))
-            for _ in range(processes - 1):  # the executor starts a process for each job no idle one takes
-                self._executor.submit(_started)
+            try:
+                with _stop_signals_blocked():  # the executor's locks start multiprocessing's resource tracker
+                    self._executor = cf.ProcessPoolExecutor(
+                        processes - 1, mp_context=multiprocessing.get_context("spawn"),
+                        initializer=_start_worker, initargs=(_Parent(), initializer, tuple(preload)))
+                    for _ in range(processes - 1):  # the executor starts a process for each job no idle one takes
+                        self._executor.submit(_started)
+            except BaseException:  # e.g. Ctrl-C, delivered when the signals are unblocked
+                self.close()
+                raise
 
     def __enter__(self) -> ProcessPool:
         return self
@@ -158,10 +244,29 @@ class ProcessPool:
         self.close()
 
     def close(self) -> None:
-        """Cancel the jobs not started, wait for the running ones, and let the workers exit."""
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        """Cancel the jobs not started and let the workers exit; kill those still busy (a job, their
+        start-up) after ``STOP_GRACE_S``. Returns within seconds, whatever the workers do."""
+        executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        # The executor's own shutdown waits for the running jobs however long they take, and its
+        # terminate() of a broken pool's workers sends SIGTERM, which they ignore: so its private
+        # lists of processes and of its manager thread are taken, to kill and wait with deadlines.
+        workers = {p.sentinel: p for p in (executor._processes or {}).values()}
+        manager = executor._executor_manager_thread
+        executor.shutdown(wait=False, cancel_futures=True)
+        try:
+            deadline = time.monotonic() + STOP_GRACE_S
+            while workers and (left := deadline - time.monotonic()) > 0:
+                for sentinel in wait_ready(list(workers), left):
+                    del workers[sentinel]
+        finally:  # also when a second Ctrl-C interrupts the wait
+            for worker in workers.values():
+                worker.kill()
+            if workers:
+                wait_ready(list(workers), EXIT_TIMEOUT_S)
+            if manager is not None:
+                manager.join(EXIT_TIMEOUT_S)  # it reaps the workers
 
     def map(self, fn: Callable[[T], R], items: Iterable[T], *,
             progress: Callable[[int], None] | None = None) -> list[R]:

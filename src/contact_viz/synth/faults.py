@@ -35,6 +35,7 @@ The mask faults of one instrument change object id 1 (``target_id``) and leave t
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import shutil
@@ -45,6 +46,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
+from contact_viz.io.atomic import atomic_write
 from contact_viz.synth.sensors import spread_tool_depth
 
 __all__ = ["ALL_FAULT_KINDS", "FAULT_KINDS", "MULTI_FAULT_KINDS", "Fault", "inject_fault", "read_mask_ids",
@@ -88,11 +90,17 @@ def _link_tree(src: Path, dst: Path) -> None:
             shutil.copy2(path, target)
 
 
-def _replace(path: Path, write) -> None:
-    """Write a new file at ``path`` (breaking a hard link, never writing through it)."""
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    write(tmp)
-    os.replace(tmp, path)
+def _replace(path: Path, write, mode: str = "wb") -> None:
+    """Write a new file at ``path`` (breaking a hard link, never writing through it): ``write(handle)``
+    into a staging file that is renamed onto ``path`` (contact_viz.io.atomic.atomic_write)."""
+    with atomic_write(path, mode, **({"newline": ""} if "b" not in mode else {})) as handle:
+        write(handle)
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()  # np.save into a real file reports a full disk without its errno
+    np.save(buffer, array)
+    return buffer.getvalue()
 
 
 def read_mask_ids(path: str | Path) -> tuple[np.ndarray, Image.Image]:
@@ -124,7 +132,7 @@ def _write_ids(path: Path, ids: np.ndarray, like: Image.Image) -> None:
     if like.mode == "P":
         out = out.convert("P")
         out.putpalette(like.getpalette())
-    _replace(path, lambda tmp: out.save(tmp, format="PNG"))
+    _replace(path, lambda handle: out.save(handle, format="PNG"))
 
 
 def _write_mask(path: Path, mask: np.ndarray, like: Image.Image, ids: np.ndarray | None = None,
@@ -139,7 +147,7 @@ def _write_mask(path: Path, mask: np.ndarray, like: Image.Image, ids: np.ndarray
 
 
 def _write_depth(path: Path, depth: np.ndarray) -> None:
-    _replace(path, lambda tmp: np.save(tmp, depth.astype(np.float32)))
+    _replace(path, lambda handle: handle.write(_npy_bytes(depth.astype(np.float32))))
 
 
 def _shift(array: np.ndarray, dx: int, dy: int, fill) -> np.ndarray:
@@ -266,13 +274,12 @@ def inject_fault(src: str | Path, dst: str | Path, kind: str, frames, severity: 
             out_rows.append({**source, "frame": by_frame[int(stem)]["frame"]})
         fields = list(rows[0].keys())
 
-        def write(tmp: Path) -> None:
-            with tmp.open("w", newline="") as handle:
-                writer = csv.DictWriter(handle, fieldnames=fields)
-                writer.writeheader()
-                writer.writerows(out_rows)
+        def write(handle) -> None:
+            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(out_rows)
 
-        _replace(dst / "force.csv", write)
+        _replace(dst / "force.csv", write, "w")
         return Fault(kind, tuple(range(len(stems))), float(shift))
     if kind == "frozen_depth":
         base = max(frames[0] - 1, 0)

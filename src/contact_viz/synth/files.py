@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import io
 import shutil
-import tempfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from contact_viz.io.atomic import atomic_write
+from contact_viz.io.atomic import atomic_write, reported_as, staging_path, sweep_stale
 from contact_viz.io.jsonfile import write_json
 from contact_viz.params import to_dict
 from contact_viz.synth.motion import ToolTrack, tissue_displacement
@@ -74,14 +74,22 @@ def _install(work: Path, out_dir: Path) -> None:
 
 
 def _write_frame(out_dir: Path, stem: str, views, depth: np.ndarray, jpeg_quality: int, palette: list[int]) -> None:
+    """The frame's files, each encoded in memory and written with one ordinary write, so that a full disk
+    is an OSError with its errno (cv2.imwrite says only False, np.save "N requested and M written")."""
     for name in ("left", "right"):
         path = out_dir / name / f"{stem}.jpg"
-        if not cv2.imwrite(str(path), views[name]["image"], [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]):
-            raise OSError(f"{path}: could not write the JPEG image")
+        ok, data = cv2.imencode(".jpg", views[name]["image"], [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        if not ok:
+            raise RuntimeError(f"{path}: OpenCV could not encode the JPEG image")
+        path.write_bytes(data.tobytes())
     mask = Image.fromarray(views["left"]["tool_id"])
     mask.putpalette(palette)
-    mask.save(out_dir / "masks" / f"{stem}.png", compress_level=1)
-    np.save(out_dir / "depth" / f"{stem}.npy", depth.astype(np.float32))
+    buffer = io.BytesIO()
+    mask.save(buffer, format="PNG", compress_level=1)
+    (out_dir / "masks" / f"{stem}.png").write_bytes(buffer.getvalue())
+    buffer = io.BytesIO()
+    np.save(buffer, depth.astype(np.float32))
+    (out_dir / "depth" / f"{stem}.npy").write_bytes(buffer.getvalue())
 
 
 def _as_tracks(tracks: ToolTrack | Sequence[ToolTrack]) -> tuple[ToolTrack, ...]:
@@ -173,13 +181,19 @@ def generate_session(
         raise TypeError(f"params must be a SynthParams, got {type(params).__name__}")
     out_dir = Path(out_dir)
     _check_target(out_dir, overwrite)
-    # Everything is written into a hidden sibling folder and moved into place when complete, so
-    # an interrupted run never leaves a partial session that reads like a whole one.
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    # Everything is written into a hidden sibling folder (.NAME.PID-NS.partial) and moved into place
+    # when complete, so an interrupted run never leaves a partial session that reads like a whole one;
+    # the folder of a run killed with SIGKILL is removed by the next run to the same place. An OSError
+    # (a full disk, a read-only place) names out_dir, not the hidden folder.
+    with reported_as(out_dir):
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        sweep_stale(out_dir)
+        work = staging_path(out_dir, "partial")
+        work.mkdir()
     try:
-        _render_session(work, out_dir.resolve().name, params, progress)
-        _install(work, out_dir)
+        with reported_as(out_dir, work):
+            _render_session(work, out_dir.resolve().name, params, progress)
+            _install(work, out_dir)
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise

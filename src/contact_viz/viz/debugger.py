@@ -24,7 +24,8 @@ never changes which frames have a patch. ``images``: "video" (default) decodes t
 video-encodes each stream on the fly (:mod:`contact_viz.viz.video`, one encoder thread per
 stream); "jpeg" logs a JPEG file as its own bytes (``rr.EncodedImage``, no re-encoding; the point
 colours come from a reduced-size decode) and JPEG-encodes other files at ``jpeg_quality``; "raw"
-logs decoded RGB.
+logs decoded RGB. A stream whose video encoder cannot be opened (images smaller or larger than the
+codec takes, a codec missing from the FFmpeg build) is logged as in "jpeg" instead, with one warning.
 
 Library code: no typer, no printing.
 """
@@ -55,7 +56,17 @@ from contact_viz.geometry.pointcloud import CloudParams, decimated_intrinsics, d
 from contact_viz.io.prefetch import prefetched
 from contact_viz.io.decoders import JPEG_REDUCTIONS, read_jpeg_bytes, read_jpeg_reduced
 from contact_viz.io.session import JPEG_SUFFIXES, Session, read_rgb
-from contact_viz.viz.video import BackgroundEncoder, VideoEncoder, VideoParams, even_size, rgb_to_i420
+from contact_viz.viz.video import (
+    CODECS,
+    FRAME_SIZES,
+    BackgroundEncoder,
+    EncoderUnavailable,
+    VideoEncoder,
+    VideoParams,
+    even_size,
+    rgb_to_i420,
+    size_problem,
+)
 from contact_viz.geometry.kinematics import frame_samples, kinematic_tip
 from contact_viz.geometry.tooltip import tool_tip_xy
 
@@ -240,28 +251,50 @@ class _Images:
     right_grey: np.ndarray | None = None
 
 
-class _ImageReader:
-    """Loads what the viewer shows of a frame's left and right images; problems become notes."""
+def _right_step(session: Session, options: DebuggerOptions) -> int:
+    """The right image's scale-down factor: ``options.right_step`` with images="video", 1 otherwise, and 1 when the
+    right video at 1/right_step would be smaller than the codec takes (images of a few pixels: nothing to save)."""
+    if options.images != "video" or options.right_step == 1:
+        return 1
+    height, width = session.image_size
+    video_h, video_w = even_size(-(-height // options.right_step), -(-width // options.right_step))
+    min_w, min_h = FRAME_SIZES[options.video.codec][0]
+    return options.right_step if video_w >= min_w and video_h >= min_h else 1
 
-    def __init__(self, session: Session, options: DebuggerOptions, with_right: bool) -> None:
+
+class _ImageReader:
+    """Loads what the viewer shows of a frame's left and right images; problems become notes.
+
+    ``videos`` (images="video"): the video streams; a side they could not encode is read as in "jpeg"."""
+
+    def __init__(self, session: Session, options: DebuggerOptions, with_right: bool,
+                 videos: _VideoStreams | None = None) -> None:
         self.session = session
         self.options = options
         self.with_right = with_right
         self.grey_step = grey_step(session, options.diagnostics)
+        self.modes = {side: options.images for side in ("left", "right")}  # how each side's image is logged
+        for side in videos.jpeg_sides if videos is not None else ():
+            self.modes[side] = "jpeg"
+        self.right_step = _right_step(session, options)
 
     def _read(self, side: str, path: Path, want_colors: bool, step: int = 1):
         """(jpeg bytes, raw rgb, I420 frame, colour image, decoded RGB) of one image; raises SessionError on
         a problem. The decoded RGB (full size, rectified; None for JPEG files read without a full decode)
         feeds the image checks.
 
-        ``step`` (video only): the frame to encode is the image at 1/step of its size."""
+        ``step`` (images="video", the right image): the frame to encode, or the JPEG image of a stream the
+        encoder refused, is the image at 1/step of its size."""
         height, width = self.session.image_size
         opts = self.options
+        mode = self.modes[side]
         rectification = self.session.rectification
-        if opts.images == "video" and step > 1 and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
+        if mode != "raw" and step > 1 and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
             bgr = read_jpeg_reduced(path, step, (height, width), side)  # a quarter of a full decode's time
+            if mode == "jpeg":
+                return self._jpeg(path, side, bgr), None, None, None, None
             return None, None, rgb_to_i420(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)), None, None
-        if opts.images == "jpeg" and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
+        if mode == "jpeg" and step == 1 and rectification is None and path.suffix.lower() in JPEG_SUFFIXES:
             data = read_jpeg_bytes(path, f"a JPEG {side} image")
             colors = None
             if want_colors:
@@ -277,19 +310,22 @@ class _ImageReader:
         if rgb.shape[:2] != (height, width):
             raise SessionError(path, f"expected a {side} image of {height}x{width} px (height x width), "
                                      f"found {rgb.shape[0]}x{rgb.shape[1]}")
-        if opts.images == "raw":
+        if mode == "raw":
             return None, rgb, None, rgb, rgb
-        if opts.images == "video":
+        small = rgb if step == 1 else cv2.resize(rgb, (-(-width // step), -(-height // step)),
+                                                  interpolation=cv2.INTER_AREA)
+        if mode == "video":
             n = opts.color_reduction  # the point colours need no more than a 1/n-size image
             colors = np.ascontiguousarray(rgb[::n, ::n]) if want_colors else None
-            small = rgb if step == 1 else cv2.resize(rgb, (-(-width // step), -(-height // step)),
-                                                      interpolation=cv2.INTER_AREA)
             return None, None, rgb_to_i420(small), colors, rgb
-        ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                                   [cv2.IMWRITE_JPEG_QUALITY, opts.jpeg_quality])
+        return self._jpeg(path, side, cv2.cvtColor(small, cv2.COLOR_RGB2BGR)), None, None, rgb, rgb
+
+    def _jpeg(self, path: Path, side: str, bgr: np.ndarray) -> bytes:
+        """``bgr`` JPEG-encoded at the options' jpeg_quality; SessionError if OpenCV cannot."""
+        ok, encoded = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.options.jpeg_quality])
         if not ok:
             raise SessionError(path, f"could not JPEG-encode the {side} image")
-        return encoded.tobytes(), None, None, rgb, rgb
+        return encoded.tobytes()
 
     def _grey(self, side: str, index: int, rgb: np.ndarray | None) -> np.ndarray | None:
         try:
@@ -311,7 +347,7 @@ class _ImageReader:
         right_path = self.session.image_path("right", index) if self.with_right else None
         if right_path is not None:
             try:
-                right = self._read("right", right_path, False, self.options.right_step)
+                right = self._read("right", right_path, False, self.right_step)
             except SessionError as exc:
                 notes.append(f"frame {stem}: right image not shown: {exc}")
         # the checks' grey images: from the decoded RGB, or a reduced-size decode of a JPEG file
@@ -322,7 +358,11 @@ class _ImageReader:
 
 
 class _VideoStreams:
-    """The left and right video encoders (one thread each) of images="video", and logging their samples."""
+    """The left and right video encoders (one thread each) of images="video", and logging their samples.
+
+    A stream whose encoder cannot be opened (a size the codec refuses, checked before opening it; a codec
+    missing from this FFmpeg build; any other refusal) is not a video: its side is in ``jpeg_sides`` (the
+    image reader logs its images as JPEG images instead) and one SessionWarning per reason says so."""
 
     def __init__(self, session: Session, rec, options: DebuggerOptions, with_right: bool) -> None:
         params = options.video
@@ -330,18 +370,43 @@ class _VideoStreams:
         fps = float(session.fps) / options.stride  # frames per second of the video (every stride-th frame)
         self.rec = rec
         self.timestamps_s = np.asarray(session.timestamps_s, dtype=np.float64)
-        self.entities = [rerun_log.ENTITY_LEFT_IMAGE] + ([rerun_log.ENTITY_RIGHT_IMAGE] if with_right else [])
-        step = {rerun_log.ENTITY_LEFT_IMAGE: 1, rerun_log.ENTITY_RIGHT_IMAGE: options.right_step}
-        self.encoders = {}
-        for entity in self.entities:
-            video_h, video_w = even_size(-(-height // step[entity]), -(-width // step[entity]))
-            self.encoders[entity] = BackgroundEncoder(VideoEncoder(video_w, video_h, fps, params))
-        rerun_log.log_video_codec(rec, self.entities, params.codec)
+        sides = {rerun_log.ENTITY_LEFT_IMAGE: "left", rerun_log.ENTITY_RIGHT_IMAGE: "right"}
+        wanted = [rerun_log.ENTITY_LEFT_IMAGE] + ([rerun_log.ENTITY_RIGHT_IMAGE] if with_right else [])
+        step = {rerun_log.ENTITY_LEFT_IMAGE: 1, rerun_log.ENTITY_RIGHT_IMAGE: _right_step(session, options)}
+        self.encoders: dict[str, BackgroundEncoder] = {}
+        # (refused by the size check?, the reason) -> [(side, its images' or frames' size)]: one warning line each
+        refused: dict[tuple[bool, str], list[tuple[str, str]]] = {}
+        for entity in wanted:
+            image_h, image_w = -(-height // step[entity]), -(-width // step[entity])
+            video_h, video_w = even_size(image_h, image_w)
+            problem = size_problem(params.codec, video_w, video_h)
+            if problem is not None:  # the encoder is not even opened (it would print its refusal)
+                scaled = f" at 1/{step[entity]} size" if step[entity] > 1 else ""
+                padded = f" (padded to {video_w}x{video_h} px)" if (video_h, video_w) != (image_h, image_w) else ""
+                refused.setdefault((True, problem), []).append(
+                    (sides[entity], f"{image_w}x{image_h} px images{scaled}{padded}"))
+                continue
+            try:
+                self.encoders[entity] = BackgroundEncoder(VideoEncoder(video_w, video_h, fps, params))
+            except EncoderUnavailable as exc:
+                refused.setdefault((False, exc.reason), []).append((sides[entity], f"{video_w}x{video_h}"))
+        self.entities = list(self.encoders)
+        self.jpeg_sides = frozenset(side for streams in refused.values() for side, _ in streams)
+        for (checked_size, reason), streams in refused.items():
+            where = " and ".join(str(session.root / side) for side, _ in streams)
+            sizes = " and ".join(dict.fromkeys(size for _, size in streams))
+            why = (f"{sizes} are {reason}" if checked_size else
+                   f"the {params.codec} encoder ({CODECS[params.codec][0]}) could not be opened for {sizes} px "
+                   f"frames: {reason}")
+            warnings.warn(f"{where}: {why}; logged as JPEG images instead", SessionWarning, stacklevel=3)
+        if self.entities:
+            rerun_log.log_video_codec(rec, self.entities, params.codec)
 
     def feed(self, index: int, shown: _Images) -> None:
         """Queue this frame's images (those that could be read) and log the samples finished so far."""
-        for entity, i420 in zip(self.entities, (shown.left_i420, shown.right_i420)):
-            if i420 is not None:
+        for entity, i420 in ((rerun_log.ENTITY_LEFT_IMAGE, shown.left_i420),
+                             (rerun_log.ENTITY_RIGHT_IMAGE, shown.right_i420)):
+            if i420 is not None and entity in self.encoders:
                 self._log(entity, self.encoders[entity].submit(i420, index))
 
     def _log(self, entity: str, samples) -> None:
@@ -500,7 +565,7 @@ def run_debugger(
     with_right = options.with_right and session.has_right
     rerun_log.log_static(rec, session, depth_step=step, depth_K=decimated_intrinsics(K, step),
                          with_right=with_right, with_model=model is not None,
-                         right_step=options.right_step if options.images == "video" else 1)
+                         right_step=_right_step(session, options))
     config = run_config(session, options=options, model=None if model is None else {
         "threshold": model.threshold, "training_sessions": list(model.training_sessions),
         "label_params": to_dict(model.label_params), "version": model.version})
@@ -522,12 +587,13 @@ def run_debugger(
     nearest_frames: dict[int, int] = {}
     contact_frames: dict[int, int] = {}
     closest: tuple[int, float, int] | None = None
-    reader = _ImageReader(session, options, with_right)
+    # the encoders first: a stream they refuse is read as JPEG images
+    videos = _VideoStreams(session, rec, options, with_right) if options.images == "video" else None
+    reader = _ImageReader(session, options, with_right, videos)
 
     results = iter_frame_results(session, options.patch_params, layers=("mask", "depth"), indices=indices)
     images = prefetched(reader.load, indices, options.prefetch, workers=options.image_workers,
                         thread_name="contact-viz-images")
-    videos = _VideoStreams(session, rec, options, with_right) if options.images == "video" else None
     depth_kind = rerun_log.DepthKindLayer()  # fine / coarse SGBM depth on the depth pane (frames with depth_fine)
     done = bad = 0
     wait_s = image_wait_s = prepare_s = log_s = 0.0

@@ -28,10 +28,14 @@ DEFAULT_WEB_PORT = 9090  # Rerun's default web viewer port
 FLUSH_TIMEOUT_S = 20.0  # longest wait for one flush of the recording to its sinks, s
 CLOSE_TIMEOUT_S = 5.0  # longest wait for the sinks to close after the last flush, s
 _LOW_SPACE_BYTES = 1 << 20  # a device with less free space than this is called full, bytes
+_STUCK: list[str] = []  # sinks that missed a deadline: the SDK's exit-time flush would wait for them forever
 
 
 class SinkError(OSError):
-    """A recording could not be written or sent (full disk, the viewer went away, a stuck writer)."""
+    """A recording could not be written or sent (full disk, the viewer went away, a stuck writer);
+    ``detail``: the SDK's own words."""
+
+    detail: str = ""
 
 
 @dataclass
@@ -70,6 +74,10 @@ class OpenedRecording:
                 else:
                     self.part.unlink(missing_ok=True)
 
+    def explain(self, exc: SinkError) -> SinkError:
+        """``exc`` (raised by a flush that did not know where the recording goes) told about this recording."""
+        return _sink_error(RuntimeError(exc.detail), self.where, FLUSH_TIMEOUT_S)
+
     @property
     def where(self) -> str:
         """The file (or else the viewer addresses) this recording goes to, for messages."""
@@ -81,11 +89,24 @@ def flush(rec: rr.RecordingStream, timeout_s: float = FLUSH_TIMEOUT_S, *, where:
     try:
         rec.flush(timeout_sec=timeout_s)
     except RuntimeError as exc:
+        _STUCK.append(where)
         raise _sink_error(exc, where, timeout_s) from None
+
+
+def exit_would_hang() -> bool:
+    """Whether a sink missed a deadline in this process: Rerun's at-exit shutdown (an unbounded flush of
+    every recording) would then never return, so the command must leave with ``os._exit``."""
+    return bool(_STUCK)
 
 
 def _sink_error(exc: RuntimeError, where: str, timeout_s: float) -> SinkError:
     text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    error = _classify(text, where, timeout_s)
+    error.detail = text
+    return error
+
+
+def _classify(text: str, where: str, timeout_s: float) -> SinkError:
     if where.endswith((".rrd", ".part")):
         try:
             free = shutil.disk_usage(Path(where).parent).free
@@ -106,6 +127,8 @@ def _disconnect(rec: rr.RecordingStream, timeout_s: float) -> None:
     closer = threading.Thread(target=rec.disconnect, name="contact-viz-close-sinks", daemon=True)
     closer.start()
     closer.join(timeout_s)
+    if closer.is_alive():
+        _STUCK.append("disconnect")
 
 
 def part_path(save: Path) -> Path:

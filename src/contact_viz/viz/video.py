@@ -16,14 +16,20 @@ Pure of Rerun and of the session: the debugger feeds frames and logs the samples
 from __future__ import annotations
 
 import math
+import sys
+import tempfile
 from collections import deque
+from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from fractions import Fraction
 
 import os
 
-os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its configuration to stderr unless told: errors only
+# SVT-AV1 prints its configuration to stderr unless told: errors only (and those of opening an encoder are
+# captured, see VideoEncoder)
+os.environ.setdefault("SVT_LOG", "1")
 
 import av  # noqa: E402
 import cv2  # noqa: E402
@@ -34,11 +40,14 @@ from contact_viz.params import check_fields, checked  # noqa: E402
 __all__ = [
     "CODECS",
     "DEFAULT_CRF",
+    "FRAME_SIZES",
     "BackgroundEncoder",
     "EncodedSample",
+    "EncoderUnavailable",
     "VideoEncoder",
     "VideoParams",
     "even_size",
+    "size_problem",
     "rgb_to_i420",
     "i420_to_rgb",
     "psnr_db",
@@ -57,6 +66,12 @@ CODECS = {
 # default quality per codec: the AV1 default gives 44 dB median PSNR on the synthetic 1080p sessions at 4 kB a frame;
 # x264's scale differs (its 30 gives 36 dB where AV1's 30 gives 41 on tests/test_video.py's scene)
 DEFAULT_CRF = {"av1": 30, "h264": 23}
+# codec -> ((min width, min height), (max width, max height)) of the frames its encoder takes, px. Measured by
+# opening the encoders of CODECS with PyAV 18.1 (FFmpeg 8, SVT-AV1 4.1, x264): SVT-AV1 refuses a side under 4 px
+# ("Svt[error]: Source Width must be at least 4"), a width over 16384 or a height over 8704; x264 a side over 16384
+# (and, in 4:2:0, an odd side, "width not divisible by 2": even_size pads odd images, so frames are even). Checked
+# before an encoder is opened (size_problem), so that it never prints its refusal.
+FRAME_SIZES = {"av1": ((4, 4), (16384, 8704)), "h264": ((2, 2), (16384, 16384))}
 _SMPTE170M = 6  # FFmpeg's AVCOL_SPC/PRI/TRC_SMPTE170M: BT.601 (525-line) matrix, primaries and transfer
 _LIMITED_RANGE = 1  # FFmpeg's AVCOL_RANGE_MPEG: Y in 16-235, U and V in 16-240
 
@@ -94,6 +109,87 @@ def even_size(height: int, width: int) -> tuple[int, int]:
     return height + height % 2, width + width % 2
 
 
+def size_problem(codec: str, width: int, height: int) -> str | None:
+    """Why the ``codec`` encoder would refuse ``width`` x ``height`` px frames ("smaller than the av1 encoder takes
+    (at least 4x4 px)"), or None if it takes them (:data:`FRAME_SIZES`)."""
+    (min_w, min_h), (max_w, max_h) = FRAME_SIZES[codec]
+    if width < min_w or height < min_h:
+        return f"smaller than the {codec} encoder takes (at least {min_w}x{min_h} px)"
+    if width > max_w or height > max_h:
+        return f"larger than the {codec} encoder takes (at most {max_w}x{max_h} px)"
+    return None
+
+
+class EncoderUnavailable(RuntimeError):
+    """The video encoder could not be opened (codec missing from this FFmpeg build, a frame size it refuses ...).
+
+    The message is one line for the user, without the encoder's own log; ``reason`` is its part that does not
+    depend on the frame size when the encoder was tried ("Source Width must be at least 4", "this FFmpeg build
+    has no libsvtav1 encoder"), or the size check's phrase ("smaller than the av1 encoder takes (at least 4x4 px)").
+    Callers log the images another way."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason or message
+
+
+_ENCODER_LOG_PREFIXES = ("Svt[",)  # what SVT-AV1 writes to fd 2 (its errors; SVT_LOG=1 keeps its info lines off)
+
+
+@contextmanager
+def _encoder_output_captured() -> Iterator[list[str]]:
+    """Capture what C code writes to file descriptor 2 in this block (SVT-AV1 prints its errors there, outside
+    Python and PyAV's logging); the yielded list holds the encoder's lines at exit. Anything else written there
+    meanwhile (another thread's output) is passed on to fd 2 afterwards. Without a usable fd 2, captures nothing."""
+    lines: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield lines
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            other = []
+            for line in tmp.read().decode("utf-8", "replace").splitlines():
+                (lines if line.startswith(_ENCODER_LOG_PREFIXES) else other).append(line)
+            _write_fd2(other)
+
+
+def _write_fd2(lines: list[str]) -> None:
+    if lines:
+        os.write(2, ("\n".join(lines) + "\n").encode("utf-8", "replace"))
+
+
+def _open_failure(exc: Exception, encoder: str, printed: list[str], logs: list) -> str:
+    """The reason, in one line, why ``encoder`` could not be opened: the encoder's own error lines (SVT-AV1's
+    ``printed`` ones, FFmpeg's ``logs`` of level error or worse), else the exception's short text."""
+    reasons = []
+    for line in printed:  # "Svt[error]: Source Width must be at least 4"
+        text = line.partition("]: ")[2].strip() or line.strip()
+        if text and text not in reasons:
+            reasons.append(text)
+    if not reasons:  # FFmpeg's errors from this encoder (PyAV may also pass on an earlier, repeated one)
+        for level, name, message in logs:
+            text = message.strip()
+            if level <= av.logging.ERROR and name == encoder and text and text not in reasons:
+                reasons.append(text)
+    if not reasons:
+        if isinstance(exc, av.codec.codec.UnknownCodecError):
+            reasons.append(f"this FFmpeg build has no {encoder} encoder")
+        elif isinstance(exc, av.error.FFmpegError):
+            reasons.append(exc.strerror or type(exc).__name__)
+        else:
+            reasons.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+    return "; ".join(reasons[:3])
+
+
 def rgb_to_i420(rgb: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 RGB -> (3H'/2, W') uint8 I420 (BT.601 limited range), H' x W' = :func:`even_size`.
 
@@ -127,6 +223,10 @@ class VideoEncoder:
     ``encode(i420, tag)`` returns the samples that became ready (usually this frame's; the
     encoder may hold a frame or two back), ``flush()`` the rest at the end. Not thread-safe: one
     thread per encoder (its frames must arrive in order anyway).
+
+    :class:`EncoderUnavailable` (one line, nothing printed) when the encoder cannot be opened: a size outside
+    :data:`FRAME_SIZES` (checked first: the encoder is not opened), a codec missing from this FFmpeg build, or
+    any other refusal (the encoder's own error lines become the message instead of reaching the console).
     """
 
     def __init__(self, width: int, height: int, fps: float, params: VideoParams = VideoParams()) -> None:
@@ -135,8 +235,31 @@ class VideoEncoder:
         if not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"VideoEncoder: fps must be > 0, got {fps!r}")
         name, options = CODECS[params.codec]
+        problem = size_problem(params.codec, width, height)
+        if problem is not None:
+            raise EncoderUnavailable(f"{width}x{height} px frames are {problem}", problem)
         self.params = params
         self.width, self.height = width, height
+        av.logging.set_level(av.logging.ERROR)  # SVT-AV1 prints its whole configuration at INFO
+        with av.logging.Capture() as logs, _encoder_output_captured() as printed:
+            try:
+                cc = self._open(name, options, width, height, fps, params)
+            except Exception as exc:  # noqa: BLE001 (whatever the reason: the caller shows the images another way)
+                error = exc
+            else:
+                error = None
+        if error is None and printed:  # what SVT_LOG set by the user asks for (its default, 1, prints nothing here)
+            _write_fd2(printed)
+        if error is not None:
+            reason = _open_failure(error, name, printed, logs)
+            raise EncoderUnavailable(f"the {params.codec} encoder ({name}) could not be opened for {width}x{height} "
+                                     f"px frames: {reason}", reason) from error
+        self._cc = cc
+        self._tags: dict[int, int] = {}  # pts -> caller's tag
+        self._pts = 0
+
+    @staticmethod
+    def _open(name: str, options: dict, width: int, height: int, fps: float, params: VideoParams):
         rate = Fraction(fps).limit_denominator(1001)
         cc = av.CodecContext.create(name, "w")
         cc.width, cc.height = width, height
@@ -152,11 +275,8 @@ class VideoEncoder:
         cc.color_trc = _SMPTE170M
         cc.color_range = _LIMITED_RANGE
         cc.options = {**options, "crf": str(params.crf)}
-        av.logging.set_level(av.logging.ERROR)  # SVT-AV1 prints its whole configuration at INFO
         cc.open()
-        self._cc = cc
-        self._tags: dict[int, int] = {}  # pts -> caller's tag
-        self._pts = 0
+        return cc
 
     def _samples(self, packets) -> list[EncodedSample]:
         out = []

@@ -8,7 +8,6 @@ import math
 import os
 import re
 import shutil
-import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from contact_viz.io.atomic import reported_as, staging_path, sweep_stale
 from contact_viz.io.calibration import CALIBRATION_FILES
 from contact_viz.errors import SessionError
 
@@ -99,14 +99,17 @@ def _staging(src: Path, out: Path) -> Iterator[Path]:
         raise ValueError(f"{out}: the new session must not contain the source folder {src}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out}: expected a new or empty folder for the imported session")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.import-{os.getpid()}-{time.monotonic_ns()}"
-    tmp.mkdir()
+    with reported_as(out):  # a read-only or full place: the error names OUT, not the staging folder
+        out.parent.mkdir(parents=True, exist_ok=True)
+        sweep_stale(out)  # the staging folder of a killed import
+        tmp = staging_path(out, "import")
+        tmp.mkdir()
     try:
-        yield tmp
-        if out.exists():
-            out.rmdir()
-        os.replace(tmp, out)
+        with reported_as(out, tmp):  # errors about the source files pass as they are
+            yield tmp
+            if out.exists():
+                out.rmdir()
+            os.replace(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
