@@ -532,6 +532,19 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView, instruments: Ins
                   frame.tool_mask.shape)
 
 
+def log_series_only(rec: rr.RecordingStream, tools: dict, posterior: float | None, predicted: bool | None,
+                    posteriors: dict[int, float] | None, instruments: InstrumentLayers) -> None:
+    """A frame shown only in the series (at the recording's current time): each instrument's distance and
+    signal (``tools``: object id -> PatchResult), the scene's posterior and decision and, with several
+    instruments, each one's posterior. No images, layers or checks (a follower catching up)."""
+    for tool, patch in tools.items():
+        _log_series(rec, instruments.entity(ENTITY_SERIES_DISTANCE, tool), patch.distance_m * MM_PER_M)
+        _log_series(rec, instruments.entity(ENTITY_SERIES_SIGNAL, tool), patch.signal)
+        if instruments.several and posteriors is not None:
+            _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, tool), posteriors[tool])
+    _log_contact(rec, posterior, predicted)
+
+
 def depth_kind_ids(depth_fine: np.ndarray | None, step: int) -> np.ndarray | None:
     """The depth-kind classes on the decimated depth grid: (h, w) uint8, DEPTH_FINE where ``depth_fine``
     ((H, W) bool, :attr:`contact_viz.io.session.Frame.depth_fine`) is True, DEPTH_COARSE elsewhere; the
