@@ -169,9 +169,3 @@ def _write_evaluation(per_frame, json_out, scores, table, model, model_path) -> 
                               "metrics": table})
 
 
-def _has_display() -> bool:
-    import os
-
-    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-

@@ -228,6 +228,7 @@ class Session:
         self.depth_config = {"source": depth_source}
         self.kinematics = kinematics  # kinematics.csv (robot tool pose samples) or None
         self.tool_tips_xy = tool_tips_xy  # (n, 2) px from tool_tips.csv, NaN where absent; None without the file
+        self._grow: dict[str, np.ndarray] = {}  # extend(): the arrays' buffers, with room to grow
         if self._sgbm is not None:
             self.depth_config["sgbm"] = asdict(self._sgbm.params)
 
@@ -239,6 +240,32 @@ class Session:
         return f"Session({self.name!r}, {len(self)} frames, {width}x{height} px, root={str(self.root)!r})"
 
     # ---- per-frame decoding ----
+
+    def extend(self, stems: Sequence[str], files: dict[str, dict[str, Path]], timestamps_s: Sequence[float]) -> None:
+        """Append frames after the last one (a session being recorded, contact_viz.io.live): their
+        ``stems``, ``files`` (layer "left", "right", "mask", "depth" -> stem -> path) and times (s).
+        Their force and labels are unknown (NaN, -1). Arrays grow by doubling: appending is O(1)."""
+        if not stems:
+            return
+        n, k = len(self.stems), len(stems)
+        for name, fill in (("timestamps_s", np.nan), ("force_xyz_n", np.nan), ("force_n", np.nan),
+                           ("labels", -1), ("label_source", "none")):
+            current = getattr(self, name)
+            buffer = self._grow.get(name)
+            if buffer is None or len(buffer) < n + k:
+                buffer = np.empty((max(2 * (n + k), 64),) + current.shape[1:], dtype=current.dtype)
+                buffer[:n] = current
+                self._grow[name] = buffer
+            buffer[n:n + k] = fill
+            if name == "timestamps_s":
+                buffer[n:n + k] = timestamps_s
+            view = buffer[:n + k].view()  # read-only to readers, as the arrays open_session makes (no copy)
+            view.flags.writeable = False
+            setattr(self, name, view)
+        self.stems.extend(stems)
+        for layer, target in (("left", self._left_files), ("right", self._right_files), ("mask", self._mask_files),
+                              ("depth", self._depth_files)):
+            target.update(files.get(layer, {}))
 
     def _check_shape(self, path: Path, shape: tuple[int, ...], what: str) -> None:
         """SessionError unless ``shape`` (an array's, channels ignored) is the left images' (H, W)."""
@@ -492,8 +519,13 @@ def open_session(
     depth_method: str | None = "sgbm",
     sgbm_params: SGBMParams | None = None,
     require_masks: bool = True,
+    only_stems: Sequence[str] | None = None,
 ) -> Session:
     """Open and validate a session directory (see the module docstring for the format).
+
+    ``only_stems``: open the session as if left/ held these frames only (a session still being
+    recorded, whose other files may be half-written: contact_viz.io.live); it grows with
+    :meth:`Session.extend`.
 
     ``object_ids`` restricts the run to those object ids of palettized / single-channel masks
     (default: every instrument, each nonzero id); the others stay in ``Frame.tool_ids``, never tissue. ``label_params`` sets the force threshold of the contact labels.
@@ -527,6 +559,9 @@ def open_session(
     if not left_dir.is_dir():
         raise SessionError(left_dir, "missing: expected a directory of rectified left frames left/<stem>.png|jpg")
     left_files = _list_stems(left_dir, IMAGE_SUFFIXES)
+    if only_stems is not None:
+        keep = set(only_stems)
+        left_files = {stem: path for stem, path in left_files.items() if stem in keep}
     if not left_files:
         raise SessionError(left_dir, "expected rectified left frames left/<stem>.png|jpg|jpeg, found none")
     stems = sorted(left_files, key=natural_key)
@@ -536,6 +571,10 @@ def open_session(
     right_dir = root / "right"
     right_files = _list_stems(right_dir, IMAGE_SUFFIXES) if right_dir.is_dir() else {}
     source = find_depth_source(root, right_files, stereo, depth_method)
+    depth_files = source.files
+    if only_stems is not None:
+        mask_files, right_files, depth_files = ({stem: path for stem, path in files.items() if stem in left_files}
+                                                for files in (mask_files, right_files, source.files))
     sgbm_cache = None
     if source.kind == "sgbm":
         resolved = (sgbm_params or SGBMParams()).resolve(image_size[1])
@@ -588,7 +627,7 @@ def open_session(
         left_files=left_files,
         right_files=right_files,
         mask_files=mask_files,
-        depth_files=source.files,
+        depth_files=depth_files,
         object_ids=object_ids,
         depth_source=source.kind,
         depth_note=note,

@@ -20,6 +20,7 @@ from contact_viz.viz.entities import (
     ENTITY_SERIES_DIAGNOSTICS,
     ENTITY_SERIES_DISTANCE,
     ENTITY_SERIES_FORCE,
+    ENTITY_SERIES_LAG,
     ENTITY_SERIES_SIGNAL,
     ENTITY_SERIES_TIP,
     ENTITY_WORLD,
@@ -57,7 +58,8 @@ def depth_kind_legend() -> str:
 
 
 def default_blueprint(*, with_right: bool = True, with_model: bool = True,
-                      with_kinematics: bool = False, with_depth_kind: bool = True) -> rrb.Blueprint:
+                      with_kinematics: bool = False, with_depth_kind: bool = True,
+                      with_lag: bool = False) -> rrb.Blueprint:
     """The layout sent with every recording: images over the 3D scene on the left, stacked time series on the right.
 
     Left column, top: the left image with the layer overlay and the patch box (large; its title
@@ -73,7 +75,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     contact (ENTITY_CONTACT) in tabs beside the diagnostics. The distance, signal and contact plots show
     every instrument's series (children of their origin: entities.tool_entity), the contact plot the
     scene's posterior with each instrument's own as a thin line in its colour. The plots' legends (which
-    name the instruments) sit in a corner that the approach phase mostly leaves free.
+    name the instruments) sit in a corner that the approach phase mostly leaves free. ``with_lag``
+    (--follow): a tab with the lag of each frame (files complete -> logged, ms).
     """
     linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
     left = rrb.Spatial2DView(name=f"left · {layer_legend()}", origin=ENTITY_LEFT_CAMERA)
@@ -124,6 +127,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
             rrb.TextDocumentView(name="instrument in contact", origin=ENTITY_CONTACT),
             *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=ENTITY_SERIES_TIP,
                                   axis_x=linked)] if with_kinematics else []),
+            *([rrb.TimeSeriesView(name="lag: files complete -> logged (ms)", origin=ENTITY_SERIES_LAG,
+                                  axis_x=linked)] if with_lag else []),
             active_tab=0,
         ),
     ]

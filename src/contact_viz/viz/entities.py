@@ -88,6 +88,7 @@ __all__ = [
     "ENTITY_SERIES_DISTANCE",
     "ENTITY_SERIES_SIGNAL",
     "ENTITY_SERIES_FORCE",
+    "ENTITY_SERIES_LAG",
     "FORCE_ENTITIES",
     "ENTITY_SERIES_CONTACT",
     "ENTITY_SERIES_TRUTH",
@@ -154,6 +155,7 @@ ENTITY_SERIES_POSTERIOR = "series/contact/posterior"
 ENTITY_SERIES_THRESHOLD = "series/contact/threshold"
 ENTITY_SERIES_PREDICTED = "series/contact/predicted"
 ENTITY_SERIES_DIAGNOSTICS = "series/diagnostics"
+ENTITY_SERIES_LAG = "series/lag_ms"  # --follow: a frame's files complete -> its data logged, ms
 ENTITY_SERIES_INVALID_DEPTH = "series/diagnostics/invalid_depth_fraction"
 ENTITY_SERIES_SCORES = "series/diagnostics/score"
 ENTITY_LEFT_EVIDENCE = "world/camera/left/evidence"

@@ -532,6 +532,13 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView, instruments: Ins
                   frame.tool_mask.shape)
 
 
+def log_force_sample(rec: rr.RecordingStream, force_xyz_n) -> None:
+    """One force sample (N, x y z) at the recording's current time: its magnitude and components."""
+    fx, fy, fz = (float(v) for v in force_xyz_n)
+    for entity, value in zip(FORCE_ENTITIES, (math.sqrt(fx * fx + fy * fy + fz * fz), fx, fy, fz)):
+        _log_series(rec, entity, value)
+
+
 def log_series_only(rec: rr.RecordingStream, tools: dict, posterior: float | None, predicted: bool | None,
                     posteriors: dict[int, float] | None, instruments: InstrumentLayers) -> None:
     """A frame shown only in the series (at the recording's current time): each instrument's distance and

@@ -1,0 +1,303 @@
+"""A session directory that a recorder is still writing: which frames are complete, in order.
+
+The recorder contract (README, "Live"): write each file under a temporary name in its folder (a
+name starting with ``.`` or ending in ``.tmp``/``.part``) and rename it into place when complete;
+append whole lines to ``frames.csv`` and ``force.csv``. Recorders that write in place are coped
+with: a file is taken only when it decodes completely (PNG ends with its IEND chunk, JPEG with its
+EOI marker, ``.npy`` holds all the bytes its header announces) and its size and time have not
+changed for ``settle_s``; a CSV line only once it ends with a newline.
+
+A frame is complete when its left image, its mask, its depth or disparity (when the session has
+that folder), its right image (when it has right/) and its ``frames.csv`` row (when it has that
+file) are. Frames are taken in the session's order (numeric stems); a frame whose other files are
+not complete ``frame_timeout_s`` after its left image is skipped, with one warning naming the file.
+
+Names are found by probing the next stems of a numbered sequence (``000124`` after ``000123``)
+at every poll and by listing the folders every ``rescan_s``: an hour-long session is not listed
+thirty times a second.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import re
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from contact_viz.errors import SessionError, SessionWarning
+from contact_viz.io.session import IMAGE_SUFFIXES, Session, open_session
+from contact_viz.io.session_files import natural_key
+from contact_viz.params import check_fields, checked
+
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # a PNG's last chunk, whole
+JPEG_END = b"\xff\xd9"  # a JPEG's end-of-image marker
+LAYER_FOLDERS = {"left": ("left", IMAGE_SUFFIXES), "right": ("right", IMAGE_SUFFIXES),
+                 "mask": ("masks", (".png",)), "depth": ("depth", (".npy", ".png")),
+                 "disparity": ("disparity", (".npy",))}
+
+
+@dataclass(frozen=True)
+class FollowParams:
+    """How a session being recorded is followed."""
+
+    poll_s: float = checked(0.005, gt=0)  # how often the folders are looked at, s
+    settle_s: float = checked(0.02, ge=0)  # a file counts once its size and time have held this long, s
+    frame_timeout_s: float = checked(5.0, gt=0)  # after its left image, how long a frame's other files may take, s
+    idle_timeout_s: float | None = checked(None, gt=0)  # stop after this long without a new frame, s; None: never
+    from_start: bool = False  # take the frames already there first (else start after the last of them)
+    rescan_s: float = checked(0.5, gt=0)  # list the folders at least this often (stems out of sequence), s
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+def decodes_completely(path: Path, size: int) -> bool:
+    """Whether the ``size`` bytes of ``path`` are a whole file of its kind (PNG, JPEG, .npy; others: yes)."""
+    suffix = path.suffix.lower()
+    try:
+        with open(path, "rb") as handle:
+            if suffix == ".png":
+                handle.seek(max(size - len(PNG_END), 0))
+                return handle.read(len(PNG_END)) == PNG_END
+            if suffix in (".jpg", ".jpeg"):
+                handle.seek(max(size - len(JPEG_END), 0))
+                return handle.read(len(JPEG_END)) == JPEG_END
+            if suffix == ".npy":
+                version = np.lib.format.read_magic(handle)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read_header(handle)
+                return size == handle.tell() + math.prod(shape) * dtype.itemsize
+    except (OSError, ValueError, EOFError):
+        return False
+    return True
+
+
+class _FileWatch:
+    """When each file was first seen complete-looking, to tell a finished file from one being written."""
+
+    def __init__(self, settle_s: float) -> None:
+        self.settle_s = settle_s
+        self._seen: dict[Path, tuple[int, int, float]] = {}  # path -> (size, mtime ns, when first seen so)
+
+    def complete(self, path: Path, now: float) -> bool:
+        try:
+            st = os.stat(path)
+        except OSError:
+            return False
+        key = (st.st_size, st.st_mtime_ns)
+        seen = self._seen.get(path)
+        if seen is None or seen[:2] != key:
+            self._seen[path] = (*key, now)
+            seen = self._seen[path]
+        steady = now - seen[2] >= self.settle_s or time.time() - st.st_mtime_ns / 1e9 >= self.settle_s
+        if st.st_size == 0 or not steady or not decodes_completely(path, st.st_size):
+            return False
+        del self._seen[path]
+        return True
+
+
+class CsvTail:
+    """The whole lines appended to a CSV file since the last read, as dicts (header from its first line)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.offset = 0
+        self.header: list[str] | None = None
+        self.line = 0
+
+    def rows(self) -> list[dict[str, str]]:
+        try:
+            with open(self.path, "rb") as handle:
+                handle.seek(self.offset)
+                data = handle.read()
+        except OSError:
+            return []
+        end = data.rfind(b"\n")
+        if end < 0:
+            return []
+        self.offset += end + 1
+        out = []
+        for cells in csv.reader(io.StringIO(data[:end + 1].decode("utf-8", errors="replace"))):
+            self.line += 1
+            if not cells:
+                continue
+            if self.header is None:
+                self.header = [c.strip() for c in cells]
+                continue
+            out.append(dict(zip(self.header, (c.strip() for c in cells))))
+        return out
+
+
+class SessionFollower:
+    """The complete frames of a session being recorded, appended to one growing :class:`Session`.
+
+    ``open_kwargs`` go to :func:`contact_viz.io.session.open_session`. :meth:`poll` returns the
+    indices added since the last call, each with the time (``time.monotonic``) it was found complete;
+    :attr:`session` is None until the first frame is.
+    """
+
+    def __init__(self, root: str | Path, params: FollowParams = FollowParams(), **open_kwargs) -> None:
+        self.root = Path(root).expanduser()
+        if not (self.root / "left").is_dir():
+            raise SessionError(self.root / "left", "missing: expected the left/ folder of a session being "
+                               "recorded (the recorder makes left/, masks/ and K.txt first)")
+        self.params = params
+        self.open_kwargs = open_kwargs
+        self.session: Session | None = None
+        self.layers = ["left", "mask"] + [layer for layer in ("right", "depth", "disparity")
+                                          if (self.root / LAYER_FOLDERS[layer][0]).is_dir()]
+        if "depth" in self.layers and "disparity" in self.layers:
+            self.layers.remove("disparity")  # depth/ wins, as in open_session
+        self.frames_csv = CsvTail(self.root / "frames.csv") if (self.root / "frames.csv").is_file() else None
+        self.force_csv = CsvTail(self.root / "force.csv")
+        self.times: dict[str, float] = {}  # frames.csv rows not yet used: stem -> s
+        self.files = _FileWatch(params.settle_s)
+        self.pending: dict[str, float] = {}  # stems whose left image is there, not yet taken -> when first seen
+        self.done: set[str] = set()  # stems taken or skipped (pruned as the session moves on)
+        self.last_stem: str | None = None
+        self.skipped: list[str] = []  # stems skipped (their files never completed)
+        self._last_scan = -math.inf
+        self.started = time.monotonic()
+        existing = sorted(self._list(), key=natural_key)
+        if not params.from_start and existing:  # start after the frames already there
+            self.last_stem = existing[-1]
+            self.done.update(existing)
+        self.force_rows: list[dict[str, str]] = []  # force.csv rows not yet logged
+
+    # -- names ------------------------------------------------------------------------------
+
+    def _list(self) -> list[str]:
+        folder, suffixes = LAYER_FOLDERS["left"]
+        try:
+            names = os.listdir(self.root / folder)
+        except OSError:
+            return []
+        return [n.rsplit(".", 1)[0] for n in names if _visible(n) and n.lower().endswith(suffixes)]
+
+    def _probe(self) -> list[str]:
+        """The next stems of a numbered sequence that exist (no listing)."""
+        if self.last_stem is None or not self.last_stem.isdigit():
+            return []
+        out, width, number = [], len(self.last_stem), int(self.last_stem)
+        for k in range(1, 4):
+            stem = f"{number + k:0{width}d}"
+            if stem not in self.pending and self._file("left", stem) is not None:
+                out.append(stem)
+        return out
+
+    def _file(self, layer: str, stem: str) -> Path | None:
+        folder, suffixes = LAYER_FOLDERS[layer]
+        for suffix in suffixes:
+            path = self.root / folder / f"{stem}{suffix}"
+            if path.exists():
+                return path
+        return None
+
+    # -- polling ------------------------------------------------------------------------------
+
+    def poll(self) -> list[tuple[int, float]]:
+        """Take every frame complete now, in order; (index in the session, when found complete) each."""
+        now = time.monotonic()
+        found = self._probe()
+        if now - self._last_scan >= self.params.rescan_s:
+            self._last_scan = now
+            found += self._list()
+        for stem in found:
+            if stem not in self.done and stem not in self.pending and (
+                    self.last_stem is None or natural_key(stem) > natural_key(self.last_stem)):
+                self.pending[stem] = now
+        if self.frames_csv is not None:
+            for row in self.frames_csv.rows():
+                try:
+                    self.times[row["frame"]] = float(row["timestamp"])
+                except (KeyError, ValueError):
+                    raise SessionError(self.frames_csv.path, f"line {self.frames_csv.line}: expected frame,timestamp "
+                                       "(stem, seconds)") from None
+        self.force_rows.extend(self.force_csv.rows())
+        taken: list[tuple[str, dict[str, Path]]] = []
+        for stem in sorted(self.pending, key=natural_key):
+            files, missing = self._complete(stem, now)
+            if missing is None:
+                taken.append((stem, files))
+            elif now - self.pending[stem] > self.params.frame_timeout_s:
+                warnings.warn(f"frame {stem} skipped: {missing} did not arrive complete within "
+                              f"{self.params.frame_timeout_s:g} s (--frame-timeout)", SessionWarning, stacklevel=2)
+                self.skipped.append(stem)
+            else:
+                break  # frames are taken in order: wait for this one
+            del self.pending[stem]
+            self.last_stem = stem
+        return self._add(taken, now)
+
+    def _complete(self, stem: str, now: float) -> tuple[dict[str, Path], str | None]:
+        """The frame's files, and the first one missing or incomplete (None: all complete)."""
+        files = {}
+        for layer in self.layers:
+            path = self._file(layer, stem)
+            if path is None:
+                folder, suffixes = LAYER_FOLDERS[layer]
+                return files, str(self.root / folder / f"{stem}{suffixes[0]}")
+            if not self.files.complete(path, now):
+                return files, str(path)
+            files[layer] = path
+        if self.frames_csv is not None and stem not in self.times:
+            return files, f"{self.frames_csv.path} row of frame {stem}"
+        return files, None
+
+    def _add(self, taken: list[tuple[str, dict[str, Path]]], now: float) -> list[tuple[int, float]]:
+        if not taken:
+            return []
+        stems = [stem for stem, _ in taken]
+        if self.session is None:
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", SessionWarning)  # rows of frames not taken yet
+                    self.session = open_session(self.root, only_stems=stems, **self.open_kwargs)
+            except SessionError:  # a CSV line being written, a calibration not there yet: try again
+                if now - self.started > self.params.frame_timeout_s:
+                    raise
+                for stem in stems:
+                    self.pending[stem] = now
+                self.last_stem = None if not self.done else max(self.done, key=natural_key)
+                return []
+            for stem in stems:
+                self.times.pop(stem, None)
+            self.done.update(stems)
+            return [(i, now) for i in range(len(stems))]
+        session = self.session
+        first = len(session)
+        by_layer: dict[str, dict[str, Path]] = {}
+        for stem, files in taken:
+            for layer, path in files.items():
+                by_layer.setdefault("depth" if layer == "disparity" else layer, {})[stem] = path
+        if self.frames_csv is not None:
+            times = [self.times.pop(stem) for stem in stems]
+        else:
+            times = [(first + i) / session.fps for i in range(len(stems))]
+        session.extend(stems, by_layer, times)
+        self.done.update(stems)
+        return [(first + i, now) for i in range(len(stems))]
+
+    def take_force_rows(self) -> list[dict[str, str]]:
+        """force.csv rows read since the last call."""
+        rows, self.force_rows = self.force_rows, []
+        return rows
+
+    def prune(self) -> None:
+        """Forget the stems before the last one taken (bounded memory over hours)."""
+        if self.last_stem is not None and len(self.done) > 1024:
+            key = natural_key(self.last_stem)
+            self.done = {s for s in self.done if natural_key(s) >= key}
+
+
+def _visible(name: str) -> bool:
+    """Not a recorder's temporary name (a hidden file, *.tmp, *.part)."""
+    return not name.startswith(".") and not re.search(r"\.(tmp|part)$", name, re.IGNORECASE)
