@@ -19,7 +19,6 @@ from contact_viz.cli_common import (
     ParamsFile,
     _LazyProgress,
     _fail,
-    _has_display,
     _inside,
     _load_features,
     _model_and_features,
@@ -141,18 +140,32 @@ def synth(
         help="Angle of the shafts above the tissue base plane, deg (e.g. 8: lying nearly flat); "
              "default: drawn around the phantom's usual axis (about 35-40 deg).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace the files of an existing session there.")] = False,
+    live: Annotated[bool, typer.Option(help="Write the session frame by frame at --fps, as a recorder does "
+                                       "(the same files in the end; for `contact-viz SESSION --follow`).")] = False,
+    fps: Annotated[Optional[float], typer.Option(min=0.001, help="With --live: frames written per second "
+                                                 "[default: the session's 30].")] = None,
+    rename: Annotated[bool, typer.Option(help="With --live: write each file under a hidden .tmp name and rename "
+                                         "it into place; --no-rename: write it in place, slowly, in pieces "
+                                         "(readers see half-written files).")] = True,
+    prerender: Annotated[bool, typer.Option(help="With --live: render every frame before writing the first "
+                                            "(no rendering during the writing).")] = False,
 ) -> None:
     """Make a synthetic session with known truth (stereo renders, masks, depth, force, truth.csv)."""
     from contact_viz.synth import PHANTOMS, SynthParams, generate_session
 
     if phantom not in PHANTOMS:
         _fail(f"--phantom must be one of {', '.join(PHANTOMS)}; got {phantom!r}")
+    if not live and (fps is not None or not rename or prerender):
+        _fail("--fps, --no-rename and --prerender go with --live")
     width, height = _parse_size(size)
     try:
         params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height, tools=tools,
                              shaft_elevation_deg=shaft_elevation_deg)
     except ValueError as exc:
         _fail(str(exc).replace("SynthParams.", "--").replace("_", "-"))
+    if live:
+        _synth_live(out_dir, params, fps, rename, prerender, overwrite)
+        return
     with _LazyProgress(f"synth {phantom}", frames) as progress:  # no bar before the target is accepted
         try:
             path = generate_session(out_dir, params, overwrite=overwrite,
@@ -161,6 +174,32 @@ def synth(
             _fail(str(exc).replace("pass overwrite=True", "pass --overwrite"))
     instruments = "" if tools == 1 else f" with {tools} instruments"
     typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}{instruments}")
+
+
+def _synth_live(out_dir: Path, params, fps: float | None, rename: bool, prerender: bool, overwrite: bool) -> None:
+    """`synth --live`: one line at the start, one at the end (also when stopped by Ctrl-C or SIGTERM)."""
+    from contact_viz.synth import write_live
+
+    rate = params.fps if fps is None else fps
+    written = 0
+
+    def count(k: int, late_s: float) -> None:
+        nonlocal written
+        written = k + 1
+
+    typer.echo(f"writing {out_dir} live at {rate:g} frames/s: {params.frames} frames")
+    try:
+        stats = write_live(out_dir, params, rate, rename=rename, prerender=prerender, overwrite=overwrite,
+                           on_frame=count)
+    except (FileExistsError, ValueError, RuntimeError) as exc:
+        _fail(str(exc).replace("pass overwrite=True", "pass --overwrite"))
+    except KeyboardInterrupt:
+        if written:
+            typer.echo(f"{out_dir}: stopped after {written} of {params.frames} frames (a session of those frames)")
+        else:
+            typer.echo(f"{out_dir}: stopped before the first frame")
+        raise
+    typer.echo(stats.line(out_dir))
 
 
 @app.command()
@@ -316,133 +355,51 @@ def view(
     cache_dir: CacheDir = None,
     tool_diameter_mm: Annotated[float, typer.Option(min=0.1, help="The instrument's shaft diameter, mm, for the "
                                 "tool-width check (docs/diagnostics.md).")] = 8.0,
+    follow: Annotated[bool, typer.Option("--follow", help="Follow a session being recorded: log each new frame "
+                      "as soon as its files are complete (README, Live).")] = False,
+    from_start: Annotated[bool, typer.Option("--from-start", help="--follow: take the frames already there "
+                          "first (default: start after them).")] = False,
+    idle_timeout: Annotated[Optional[float], typer.Option(min=0.001, help="--follow: stop after this many seconds "
+                            "without a new frame [default: never; Ctrl-C stops].")] = None,
+    frame_timeout: Annotated[float, typer.Option(min=0.001, help="--follow: skip a frame whose mask, depth or "
+                             "right image is not complete this many seconds after its left image.")] = 5.0,
 ) -> None:
     """Run the pipeline frame by frame and log everything to one Rerun timeline.
 
     With --model the model's patch parameters are used (--params is then an error if it differs)."""
-    from contact_viz.console import FrameReport, check_connect_url, check_output_file
-    from contact_viz.errors import SessionError
-    from contact_viz.io.session import open_session
+    from contact_viz.checks.params import DiagnosticParams
+    from contact_viz.geometry.pointcloud import CloudParams
+    from contact_viz.io.live import FollowParams
+    from contact_viz.viz.debugger import IMAGE_MODES, DebuggerOptions
+    from contact_viz.viz.video import CODECS, VideoParams
+    from contact_viz.viz.view_command import ViewRequest, run_view
 
     params, label_params = _resolve_params(params_file, contact_force)
-    if connect is not None:
-        check_connect_url(connect)
-    model = None
-    try:
-        if model_path is not None:
-            from contact_viz.model.model_file import load_model
-            from contact_viz.params import to_dict
-
-            model = load_model(model_path)
-            fitted, given = to_dict(model.patch_params), to_dict(params)
-            diff = [f"{k}: model {fitted[k]!r}, --params {given[k]!r}" for k in fitted
-                    if params_file is not None and fitted[k] != given[k]]
-            if diff:
-                _fail(f"--params {params_file}: differs from the patch parameters {model_path} was fitted with "
-                      f"({'; '.join(diff)}); drop --params (view then uses the model's) or fit a model with "
-                      "these parameters")
-            params = model.patch_params
-        session = open_session(session_dir, object_ids=object_ids, label_params=label_params, cache_dir=cache_dir)
-        if hand_eye is not None:
-            from contact_viz.io.kinematics import read_hand_eye
-
-            camera_T_base = tuple(tuple(float(v) for v in row) for row in read_hand_eye(hand_eye))
-            if session.kinematics is None:
-                raise SessionError(session.root / "kinematics.csv", "missing: --hand-eye needs the robot's pose "
-                                   "(import a bag with a pose topic)")
-    except (SessionError, ValueError) as exc:
-        _fail(str(exc))
-    typer.echo(session.depth_note, err=True)
-    from contact_viz.checks.params import DiagnosticParams
-    from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames
-    from contact_viz.geometry.pointcloud import CloudParams
-    from contact_viz.viz.rerun_log import default_blueprint, open_recording
-    from contact_viz.viz.video import VideoParams
-
-    try:
-        select_frames(len(session), start, end, stride)  # before any sink is opened
-    except ValueError as exc:
-        _fail(f"--{str(exc)}")
-    from contact_viz.viz.debugger import IMAGE_MODES
-    from contact_viz.viz.video import CODECS
-
     if images not in IMAGE_MODES:
         _fail(f"--images: expected one of {', '.join(IMAGE_MODES)}, got {images!r}")
     if video_codec not in CODECS:
         _fail(f"--video-codec: expected one of {', '.join(CODECS)}, got {video_codec!r}")
-    if spawn is None:
-        spawn = _has_display() and save is None and not serve and connect is None
-    if not (spawn or serve or connect or save):
-        save = Path("results") / session.name / "view.rrd"
-        typer.echo(f"no display here: saving the recording to {save} (open it with `rerun {save}`)")
-    if save is not None:
-        check_output_file(save, "--save", session_root=session.root, example="view.rrd")
-    try:
-        options = DebuggerOptions(
-            start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, images=images,
-            video=VideoParams(codec=video_codec, crf=video_crf),
-            with_right=right, right_step=right_step, depth_step=depth_step, points=points,
-            cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
-                              voxel_m=voxel_mm / 1000),
-            patch_params=params, diagnostics=DiagnosticParams(tool_diameter_mm=tool_diameter_mm),
-            hand_eye=camera_T_base if hand_eye is not None else None,
-        )
-        opened = open_recording(save=save, connect=connect, spawn=spawn, serve=serve, grpc_port=grpc_port,
-                                web_port=web_port, blueprint=default_blueprint(
-                                    with_right=right and session.has_right, with_model=model is not None,
-                                    with_kinematics=hand_eye is not None,
-                                    with_depth_kind=session.depth_source == "sgbm"))
-    except (ValueError, IndexError) as exc:
-        _fail(str(exc))
-    if opened.web_viewer_url:
-        typer.echo(f"web viewer: {opened.web_viewer_url}")
-    if model is None:
-        typer.echo("no --model: the HMM posterior is not shown (make one with `contact-viz fit TRAIN... -o model.json`)")
-    report = FrameReport()
-    from contact_viz.viz.sinks import SinkError
-
-    try:
-        with warnings.catch_warnings(record=True) as caught, _progress() as progress:
-            warnings.simplefilter("always")
-            task = progress.add_task(f"view {session.name}", total=None)
-            summary = run_debugger(session, opened.rec, options, model=model,
-                                   progress=lambda done, total: progress.update(task, completed=done, total=total))
-        if summary.frames and summary.bad_frames == summary.frames and not summary.interrupted:
-            opened.close(keep=False)
-            _fail(f"{session.root}: no frame could be read (see the warnings above); no recording written")
-        if serve:  # the served viewer keeps the data until Ctrl-C; the .rrd is renamed into place then
-            opened.flush()
-        else:
-            opened.close()  # the .rrd appears under its name only now, flushed and complete
-    except SinkError as exc:
-        error = opened.explain(exc)  # before the staging file is removed (its size tells a full disk)
-        opened.close(keep=False)
-        _fail(f"{error.filename}: {error.strerror}")
-    except (ValueError, IndexError) as exc:
-        opened.close(keep=False)
-        _fail(str(exc))
-    except BaseException:
-        opened.close(keep=False)
-        raise
-    report.add_warnings(caught)
-    _print_report(report)
-    for line in summary.lines():
+    options = DebuggerOptions(
+        start=start, end=end, stride=stride, jpeg_quality=jpeg_quality, images=images,
+        video=VideoParams(codec=video_codec, crf=video_crf), with_right=right, right_step=right_step,
+        depth_step=depth_step, points=points, diagnostics=DiagnosticParams(tool_diameter_mm=tool_diameter_mm),
+        cloud=CloudParams(near_radius_px=near_radius_px, near_stride_px=near_stride, stride_px=point_stride,
+                          voxel_m=voxel_mm / 1000))
+    request = ViewRequest(
+        session_dir=session_dir, options=options, model_path=model_path, params=params, params_file=params_file,
+        label_params=label_params, object_ids=None if object_ids is None else tuple(object_ids), cache_dir=cache_dir,
+        hand_eye=hand_eye, save=save, serve=serve, connect=connect, spawn=spawn, grpc_port=grpc_port,
+        web_port=web_port, follow=FollowParams(from_start=from_start, idle_timeout_s=idle_timeout,
+                                               frame_timeout_s=frame_timeout) if follow else None)
+    with _LazyProgress(f"view {session_dir.name}", None) as bar:
+        outcome = run_view(request, lambda line, err: typer.echo(line, err=err),
+                           progress=lambda done, total: bar.update(completed=done, total=total))
+    _print_report(outcome.report)
+    for line in outcome.lines:
         typer.echo(line)
-    if save is not None:
-        typer.echo(f"{save}: open it with `rerun {save}`")
-    if summary.interrupted:  # stopped by Ctrl-C, SIGTERM or SIGHUP: what was logged is kept, and said so
-        opened.close()
-        raise typer.Exit(code=128 + (summary.stop_signal or 2))
-    if serve:
-        import time
-
-        typer.echo("serving; press Ctrl-C to stop")
-        try:
-            while True:
-                time.sleep(1)
-        except KeyboardInterrupt:
-            pass
-        opened.close()
+    if outcome.serve is not None:
+        outcome.serve()
+    raise typer.Exit(code=outcome.status)
 
 
 @app.command()

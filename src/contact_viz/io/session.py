@@ -229,6 +229,7 @@ class Session:
         self.kinematics = kinematics  # kinematics.csv (robot tool pose samples) or None
         self.tool_tips_xy = tool_tips_xy  # (n, 2) px from tool_tips.csv, NaN where absent; None without the file
         self._grow: dict[str, np.ndarray] = {}  # extend(): the arrays' buffers, with room to grow
+        self._forgotten = 0  # forget_files(): frames before this have no file names any more
         if self._sgbm is not None:
             self.depth_config["sgbm"] = asdict(self._sgbm.params)
 
@@ -266,6 +267,14 @@ class Session:
         for layer, target in (("left", self._left_files), ("right", self._right_files), ("mask", self._mask_files),
                               ("depth", self._depth_files)):
             target.update(files.get(layer, {}))
+
+    def forget_files(self, before: int) -> None:
+        """Drop the file names of frames ``< before`` (a followed session: they are not read again, and
+        an hour of them would be tens of MB); their stems, times and force stay."""
+        for stem in self.stems[self._forgotten:max(before, self._forgotten)]:
+            for files in (self._left_files, self._right_files, self._mask_files, self._depth_files):
+                files.pop(stem, None)
+        self._forgotten = max(before, self._forgotten)
 
     def _check_shape(self, path: Path, shape: tuple[int, ...], what: str) -> None:
         """SessionError unless ``shape`` (an array's, channels ignored) is the left images' (H, W)."""

@@ -21,7 +21,8 @@ The package is layered; each module only uses the ones above it:
 - ``sensors`` (pure numpy/cv2): stereo depth noise and holes (``stereo_depth``), force noise
   (``measured_force``), manual-style labels (``manual_labels``);
 - ``render``: open3d ray casting and shading of a stereo pair (``Renderer``);
-- ``files``: file writing (``generate_session``) and what the sensors record (``sensor_streams``).
+- ``files``: file writing (``generate_session``) and what the sensors record (``sensor_streams``);
+- ``live``: the same files written frame by frame at a given rate, as a recorder does (``write_live``).
 
 Coordinates are metres in the left camera frame (OpenCV: x right, y down, z forward). The right
 camera sits at (+baseline, 0, 0) with the same orientation, so true disparity = fx * B / Z.
@@ -30,6 +31,7 @@ camera sits at (+baseline, 0, 0) with the same orientation, so true disparity = 
 from __future__ import annotations
 
 from contact_viz.synth.files import davis_palette, generate_session, scene_truth, sensor_streams, true_depth
+from contact_viz.synth.live import LiveStats, write_live
 from contact_viz.synth.motion import ToolTrack, plan_tool_track, tissue_displacement
 from contact_viz.synth.second import plan_tracks
 from contact_viz.synth.params import PHANTOMS, PHASES, REFERENCE_WIDTH_PX, SynthParams
@@ -48,6 +50,7 @@ from contact_viz.synth.sensors import manual_labels, measured_force, scene_force
 from contact_viz.synth.tools import cast_tools, tool_distance, tool_primitives
 
 __all__ = [
+    "LiveStats",
     "PHANTOMS",
     "PHASES",
     "REFERENCE_WIDTH_PX",
@@ -77,4 +80,5 @@ __all__ = [
     "tool_parts",
     "tool_primitives",
     "true_depth",
+    "write_live",
 ]

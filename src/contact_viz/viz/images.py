@@ -46,6 +46,16 @@ class ShownImages:
     right_grey: np.ndarray | None = None
 
 
+def every_nth_pixel(image: np.ndarray, n: int) -> np.ndarray:
+    """``image[::n, ::n]``, contiguous. When n divides both sides, by OpenCV's nearest-neighbour resize (the same
+    pixels: it takes source pixel n*i; 0.36 against 2.1 ms of CPU for a 1080p RGB image at n = 2, and it releases
+    the GIL, which NumPy's strided copy holds while the run loop waits for it)."""
+    height, width = image.shape[:2]
+    if n > 1 and height % n == 0 and width % n == 0:
+        return cv2.resize(image, (width // n, height // n), interpolation=cv2.INTER_NEAREST)
+    return np.ascontiguousarray(image[::n, ::n])
+
+
 def right_step_of(session: Session, options: DebuggerOptions) -> int:
     """The right image's scale-down factor: ``options.right_step`` with images="video", 1 otherwise, and 1 when the
     right video at 1/right_step would be smaller than the codec takes (images of a few pixels: nothing to save)."""
@@ -111,7 +121,7 @@ class ImageReader:
                                                   interpolation=cv2.INTER_AREA)
         if mode == "video":
             n = opts.color_reduction  # the point colours need no more than a 1/n-size image
-            colors = np.ascontiguousarray(rgb[::n, ::n]) if want_colors else None
+            colors = every_nth_pixel(rgb, n) if want_colors else None
             return None, None, rgb_to_i420(small), colors, rgb
         return self._jpeg(path, side, cv2.cvtColor(small, cv2.COLOR_RGB2BGR)), None, None, rgb, rgb
 
@@ -164,7 +174,7 @@ class VideoStreams:
         height, width = session.image_size
         fps = float(session.fps) / options.stride  # frames per second of the video (every stride-th frame)
         self.rec = rec
-        self.timestamps_s = np.asarray(session.timestamps_s, dtype=np.float64)
+        self.session = session  # its frame times (read when a sample is logged: a followed session grows)
         sides = {rerun_log.ENTITY_LEFT_IMAGE: "left", rerun_log.ENTITY_RIGHT_IMAGE: "right"}
         wanted = [rerun_log.ENTITY_LEFT_IMAGE] + ([rerun_log.ENTITY_RIGHT_IMAGE] if with_right else [])
         step = {rerun_log.ENTITY_LEFT_IMAGE: 1, rerun_log.ENTITY_RIGHT_IMAGE: right_step_of(session, options)}
@@ -205,7 +215,7 @@ class VideoStreams:
                 self._log(entity, self.encoders[entity].submit(i420, index))
 
     def _log(self, entity: str, samples) -> None:
-        rerun_log.log_video_samples(self.rec, entity, samples, self.timestamps_s)
+        rerun_log.log_video_samples(self.rec, entity, samples, self.session.timestamps_s)
 
     def close(self) -> None:
         """Encode what is queued, flush the encoders and log the last samples."""

@@ -1,0 +1,139 @@
+"""`contact-viz SESSION --follow` on a session recorded in real time: latency and keeping up.
+
+A finished synthetic session (rendered once, cached under --dir) is played into a new folder at
+--fps by a player process (the recorder contract: each file under a hidden temporary name, then
+renamed; right, mask, depth, left, then its force.csv line), while the real command follows it:
+
+    contact-viz view LIVE --follow --from-start --idle-timeout 3 --save OUT.rrd
+
+and its summary is read: the latency from a frame's files being complete to its data being logged
+(median, 95th percentile, max; frames logged whole) and how many frames it showed only in the
+series (behind: the newest frame is shown whole, the older ones as series only; with SGBM those
+get no distance). Keeping up = every frame after the first few logged whole.
+
+    python benchmarks/bench_live.py                       # the three cases of the README
+    python benchmarks/bench_live.py --case 720p-depth --frames 300 --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CASES = {  # name -> (size, keep depth/, frames/s the recorder writes)
+    "720p-depth": ("1280x720", True, 30.0),
+    "1080p-depth": ("1920x1080", True, 30.0),
+    "720p-stereo": ("1280x720", False, 10.0),
+}
+PLAYER = r"""
+import os, shutil, sys, time
+from pathlib import Path
+src, dst, fps = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
+folders = [d for d in ("right", "masks", "depth", "left") if (src / d).is_dir()]
+stems = sorted(p.stem for p in (src / "left").iterdir() if not p.name.startswith("."))
+for name in ("K.txt", "session.json"):
+    shutil.copy(src / name, dst / name)
+force = (src / "force.csv").read_bytes().splitlines(keepends=True)
+data = [{d: [(p.name, p.read_bytes()) for p in (src / d).glob(stem + ".*")][0] for d in folders} for stem in stems]
+for d in folders:
+    (dst / d).mkdir()
+fd = os.open(dst / "force.csv", os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+os.write(fd, force[0])
+print("ready", flush=True)
+sys.stdin.readline()
+t0 = time.monotonic() + 0.2
+late = 0.0
+for k, files in enumerate(data):
+    wait = t0 + k / fps - time.monotonic()
+    if wait > 0:
+        time.sleep(wait)
+    late = max(late, -wait)
+    for d in folders:
+        name, content = files[d]
+        tmp = dst / d / f".{name}.tmp"
+        tmp.write_bytes(content)
+        os.rename(tmp, dst / d / name)
+    os.write(fd, force[k + 1])
+print(f"played {len(data)} frames, at most {late * 1000:.1f} ms late", flush=True)
+"""
+SUMMARY = re.compile(r"latency \(files complete -> logged\): median (\S+) ms, 95th percentile (\S+) ms, max (\S+) ms; "
+                     r"(\d+) frames shown only in the series \((\d+) without a distance\), (\d+) timed out")
+
+
+def source(cache: Path, case: str, frames: int) -> Path:
+    size, keep_depth, _ = CASES[case]
+    out = cache / f"{case}-{frames}"
+    if not out.is_dir():
+        tmp = cache / f".{out.name}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        subprocess.run([sys.executable, "-m", "contact_viz.cli", "synth", str(tmp), "--frames", str(frames),
+                        "--size", size, "--seed", "11", "--phantom", "kidney"], check=True, capture_output=True)
+        if not keep_depth:
+            shutil.rmtree(tmp / "depth")
+        os.rename(tmp, out)
+    return out
+
+
+def run_once(src: Path, work: Path, fps: float, cache_dir: Path) -> dict:
+    live = work / "live"
+    shutil.rmtree(live, ignore_errors=True)
+    live.mkdir(parents=True)
+    player = subprocess.Popen([sys.executable, "-c", PLAYER, str(src), str(live), str(fps)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    assert player.stdout.readline().strip() == "ready"
+    follower = subprocess.Popen([sys.executable, "-m", "contact_viz.cli", "view", str(live), "--follow",
+                                 "--from-start", "--idle-timeout", "3", "--save", str(work / "out.rrd"),
+                                 "--cache-dir", str(cache_dir)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(2.0)  # the follower's start-up (imports) before the first frame
+    player.stdin.write("go\n")
+    player.stdin.flush()
+    played = player.stdout.readline().strip()
+    player.wait(timeout=600)
+    stdout, stderr = follower.communicate(timeout=600)
+    match = SUMMARY.search(stdout)
+    if follower.returncode != 0 or match is None:
+        raise SystemExit(f"follower failed ({follower.returncode}):\n{stdout}\n{stderr}")
+    whole = int(re.search(r"^(\d+) frames in", stdout, re.MULTILINE).group(1))
+    p50, p95, worst = (float(v) for v in match.groups()[:3])
+    return {"whole": whole, "series_only": int(match.group(4)), "no_distance": int(match.group(5)),
+            "timed_out": int(match.group(6)), "p50_ms": p50, "p95_ms": p95, "max_ms": worst, "player": played}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--case", choices=sorted(CASES), action="append")
+    parser.add_argument("--frames", type=int, default=150)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--dir", type=Path, default=Path("/tmp/contact-viz-bench-live"))
+    parser.add_argument("--json", type=Path, help="also write the figures here")
+    args = parser.parse_args()
+    args.dir.mkdir(parents=True, exist_ok=True)
+    figures = {}
+    print(f"{'case':<13} {'fps':>4} {'frames':>6} {'whole':>6} {'series only':>11} {'no distance':>11} "
+          f"{'median ms':>9} {'p95 ms':>7} {'max ms':>7}")
+    for case in args.case or list(CASES):
+        _, _, fps = CASES[case]
+        src = source(args.dir, case, args.frames)
+        runs = [run_once(src, args.dir / "work", fps, args.dir / "cache") for _ in range(args.repeats)]
+        med = {k: statistics.median(r[k] for r in runs) for k in runs[0] if k != "player"}
+        figures[case] = {"fps": fps, "frames": args.frames, "runs": runs, "median": med}
+        print(f"{case:<13} {fps:>4.0f} {args.frames:>6} {med['whole']:>6.0f} {med['series_only']:>11.0f} "
+              f"{med['no_distance']:>11.0f} {med['p50_ms']:>9.0f} {med['p95_ms']:>7.0f} {med['max_ms']:>7.0f}")
+        for r in runs:
+            print(f"    run: {r['whole']} whole, {r['series_only']} series only, median {r['p50_ms']:.0f} ms, "
+                  f"p95 {r['p95_ms']:.0f} ms; player: {r['player']}")
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2))
+
+
+if __name__ == "__main__":
+    main()
