@@ -13,6 +13,7 @@ get no distance). Keeping up = every frame after the first few logged whole.
 
     python benchmarks/bench_live.py                       # the three cases of the README
     python benchmarks/bench_live.py --case 720p-depth --frames 300 --repeats 3
+    python benchmarks/bench_live.py --memory 12000     # the follower's memory over a long session
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ PLAYER = r"""
 import os, shutil, sys, time
 from pathlib import Path
 src, dst, fps = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
+total = int(sys.argv[4]) if len(sys.argv) > 4 else 0  # > 0: play this many frames, cycling over the source's
 folders = [d for d in ("right", "masks", "depth", "left") if (src / d).is_dir()]
 stems = sorted(p.stem for p in (src / "left").iterdir() if not p.name.startswith("."))
 for name in ("K.txt", "session.json"):
@@ -51,18 +53,20 @@ print("ready", flush=True)
 sys.stdin.readline()
 t0 = time.monotonic() + 0.2
 late = 0.0
-for k, files in enumerate(data):
+for k in range(total or len(data)):
+    files = data[k % len(data)]
     wait = t0 + k / fps - time.monotonic()
     if wait > 0:
         time.sleep(wait)
     late = max(late, -wait)
     for d in folders:
         name, content = files[d]
+        name = f"{k:06d}" + name[name.index("."):]
         tmp = dst / d / f".{name}.tmp"
         tmp.write_bytes(content)
         os.rename(tmp, dst / d / name)
-    os.write(fd, force[k + 1])
-print(f"played {len(data)} frames, at most {late * 1000:.1f} ms late", flush=True)
+    os.write(fd, f"{k}".encode() + force[k % len(data) + 1][force[k % len(data) + 1].index(b","):])
+print(f"played {total or len(data)} frames, at most {late * 1000:.1f} ms late", flush=True)
 """
 SUMMARY = re.compile(r"latency \(files complete -> logged\): median (\S+) ms, 95th percentile (\S+) ms, max (\S+) ms; "
                      r"(\d+) frames shown only in the series \((\d+) without a distance\), (\d+) timed out")
@@ -108,6 +112,39 @@ def run_once(src: Path, work: Path, fps: float, cache_dir: Path) -> dict:
             "timed_out": int(match.group(6)), "p50_ms": p50, "p95_ms": p95, "max_ms": worst, "player": played}
 
 
+def memory(cache: Path, total: int, fps: float = 100.0) -> None:
+    """The follower's resident memory while a 160x96 session of ``total`` frames is played at ``fps``."""
+    src = cache / "memory-source"
+    if not src.is_dir():
+        subprocess.run([sys.executable, "-m", "contact_viz.cli", "synth", str(src), "--frames", "40", "--size",
+                        "160x96", "--seed", "3"], check=True, capture_output=True)
+    live = cache / "work" / "memory"
+    shutil.rmtree(live, ignore_errors=True)
+    live.mkdir(parents=True)
+    player = subprocess.Popen([sys.executable, "-c", PLAYER, str(src), str(live), str(fps), str(total)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert player.stdout.readline().strip() == "ready"
+    follower = subprocess.Popen([sys.executable, "-m", "contact_viz.cli", "view", str(live), "--follow", "--from-start",
+                                 "--idle-timeout", "3", "--save", str(cache / "work" / "memory.rrd")],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(2.0)
+    player.stdin.write("go\n")
+    player.stdin.flush()
+    print(f"{'s':>5} {'frames written':>14} {'follower RSS MB':>15}")
+    started = time.monotonic()
+    while player.poll() is None:
+        time.sleep(5.0)
+        written = len(os.listdir(live / "left"))
+        try:
+            rss = next(int(line.split()[1]) for line in open(f"/proc/{follower.pid}/status") if line.startswith("VmRSS"))
+        except (OSError, StopIteration):
+            break
+        print(f"{time.monotonic() - started:5.0f} {written:14d} {rss / 1024:15.1f}", flush=True)
+    stdout, _ = follower.communicate(timeout=600)
+    print(stdout.splitlines()[0] if stdout else "")
+    print(next((line for line in stdout.splitlines() if line.startswith("latency")), ""))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--case", choices=sorted(CASES), action="append")
@@ -115,8 +152,13 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--dir", type=Path, default=Path("/tmp/contact-viz-bench-live"))
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--memory", type=int, metavar="FRAMES", help="only measure the follower's memory over a "
+                        "160x96 session of FRAMES frames played at 100 frames/s")
     args = parser.parse_args()
     args.dir.mkdir(parents=True, exist_ok=True)
+    if args.memory:
+        memory(args.dir, args.memory)
+        return
     figures = {}
     print(f"{'case':<13} {'fps':>4} {'frames':>6} {'whole':>6} {'series only':>11} {'no distance':>11} "
           f"{'median ms':>9} {'p95 ms':>7} {'max ms':>7}")

@@ -17,6 +17,7 @@ import warnings
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import rerun as rr
@@ -74,8 +75,14 @@ def follow_session(
     """
     if options.hand_eye is not None:
         raise ValueError("--hand-eye: not available with --follow (kinematics.csv is read whole)")
-    follower = SessionFollower(root, params, **(open_kwargs or {}))
     started = last_new = time.monotonic()
+    while not (Path(root) / "left").is_dir():  # the recorder has not made the session yet: wait for it
+        if params.idle_timeout_s is not None and time.monotonic() - started > params.idle_timeout_s:
+            break
+        if stop is not None and stop():
+            break
+        time.sleep(max(params.poll_s, 0.05))
+    follower = SessionFollower(root, params, **(open_kwargs or {}))
     logger: FrameLogger | None = None
     latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
     series_only = unfiltered = 0

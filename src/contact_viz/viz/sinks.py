@@ -148,6 +148,7 @@ def open_recording(
     web_port: int = DEFAULT_WEB_PORT,
     blueprint=None,
     recording_id: str | None = None,
+    streamed: bool = False,
 ) -> OpenedRecording:
     """A recording stream that writes to every chosen sink (at least one); ``close()`` it.
 
@@ -156,7 +157,21 @@ def open_recording(
     spawn: start a native viewer (needs a display) on ``grpc_port`` and stream to it.
     serve: host a gRPC server on ``grpc_port`` and a web viewer on ``web_port`` in this process.
     ``blueprint`` (default: none) is sent to every sink as the default layout.
+    ``streamed`` (save only, no other sink): a file without Rerun's footer. The footer's index of every
+    chunk is kept in memory until the end, about 10 kB per debugger frame (1 GB an hour at 30
+    frames/s; ``benchmarks/bench_live.py --memory``); without it the memory stays flat and a viewer
+    reads the file whole, as it does a recording cut short.
     """
+    if streamed and save is not None and not (spawn or connect or serve):
+        save = Path(save)
+        if save.suffix != ".rrd":
+            raise ValueError(f"save: expected a path ending in .rrd, got {str(save)!r}")
+        if not save.parent.is_dir():
+            raise ValueError(f"save: directory {str(save.parent)!r} does not exist")
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        part = part_path(save)
+        rec.save(part, default_blueprint=blueprint, write_footer=False)
+        return OpenedRecording(rec=rec, web_viewer_url=None, grpc_url=None, save=save, part=part)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
     sinks = []
     targets = []
