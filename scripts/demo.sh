@@ -3,12 +3,13 @@
 # session each on `cup`, `kidney`, `liver` and `glove`; the distance of one session against its
 # true gap; the leave-one-session-out HMM ensemble; the held-out table; and demo/demo.rrd, the
 # Rerun recording of the kidney test session. Sets up .venv on first use. Outputs go to demo/.
-# DEMO_SIZE (default 480x270) and DEMO_FRAMES (default 150) make it bigger or smaller.
+# DEMO_SIZE (default 480x270) and DEMO_FRAMES (default 150) make it bigger or smaller; DEMO_OUT (default
+# demo) is where it writes. Results go to stdout, the commands it runs and progress bars to stderr.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$ROOT/scripts/bootstrap.sh"
 cd "$ROOT"
-OUT=demo
+OUT="${DEMO_OUT:-demo}"
 SIZE="${DEMO_SIZE:-480x270}"
 FRAMES="${DEMO_FRAMES:-150}"
 run() { echo "+ $*" >&2; "$@"; }

@@ -64,7 +64,7 @@ def _main_options(
 
 @app.command()
 def extract(
-    session_dir: Annotated[Path, typer.Argument(help="Session directory (see README: session format).")],
+    session_dir: Annotated[Path, typer.Argument(help="Session directory (docs/session.md).")],
     output: Annotated[Optional[Path], typer.Option("-o", "--output", help="features CSV to write "
                       "[default: results/<session name>/features.csv]")] = None,
     object_ids: ObjectId = None,
@@ -204,7 +204,7 @@ def _synth_live(out_dir: Path, params, fps: float | None, rename: bool, prerende
 
 @app.command()
 def fit(
-    train_sessions: Annotated[list[Path], typer.Argument(help="Labelled training session directories (K >= 2).")],
+    train_sessions: Annotated[list[Path], typer.Argument(help="Labelled training session directories (at least 2).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="model.json to write.")] = Path("model.json"),
     params_file: ParamsFile = None,
     contact_force: ContactForce = 2.0,
@@ -248,7 +248,7 @@ def fit(
 @app.command()
 def evaluate(
     model_path: Annotated[Path, typer.Argument(metavar="MODEL", help="model.json from `contact-viz fit`.")],
-    test_sessions: Annotated[list[Path], typer.Argument(help="Labelled test session dirs or features CSVs.")],
+    test_sessions: Annotated[list[Path], typer.Argument(help="Labelled test session directories or features CSVs.")],
     per_frame: Annotated[Optional[Path], typer.Option(help="CSV of session, frame, signal, posterior, "
                          "predicted, label for every frame.")] = None,
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Metrics as JSON.")] = None,
@@ -356,7 +356,7 @@ def view(
     tool_diameter_mm: Annotated[float, typer.Option(min=0.1, help="The instrument's shaft diameter, mm, for the "
                                 "tool-width check (docs/diagnostics.md).")] = 8.0,
     follow: Annotated[bool, typer.Option("--follow", help="Follow a session being recorded: log each new frame "
-                      "as soon as its files are complete (README, Live).")] = False,
+                      "as soon as its files are complete (docs/live.md).")] = False,
     from_start: Annotated[bool, typer.Option("--from-start", help="--follow: take the frames already there "
                           "first (default: start after them).")] = False,
     idle_timeout: Annotated[Optional[float], typer.Option(min=0.001, help="--follow: stop after this many seconds "

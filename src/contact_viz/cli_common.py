@@ -33,8 +33,11 @@ def _progress():
             elapsed = task.elapsed or 0.0
             return f"{task.completed / elapsed:5.1f} frames/s" if elapsed > 0 else "  --- frames/s"
 
+    from rich.console import Console
+
+    # on stderr: stdout holds the results only (what the README quotes; what a pipe or script reads)
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), _Rate(""),
-                    TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
+                    TimeElapsedColumn(), TimeRemainingColumn(), transient=False, console=Console(stderr=True))
 
 
 class _LazyProgress:

@@ -223,7 +223,7 @@ class PatchParams:
     band_scale: float = checked(0.1, ge=0)  # exterior band width per px of visible shaft width, px/px
     band_min_px: float = checked(2.0, gt=0)  # narrowest exterior band, px
     band_max_px: float = checked(8.0, gt=0)  # widest exterior band, px
-    # Depth bled from the tool over the tissue (issue 13; the bleeding test of geometry.patch._band_distances):
+    # Depth bled from the tool over the tissue (the bleeding test of geometry.patch._band_distances):
     reject_bleeding: bool = True  # drop band pixels whose depth is nearer the tool's than the tissue's beyond, -
     bleed_step_m: float = checked(0.004, gt=0)  # ... only where tool and tissue beyond differ by this, m
     bleed_beyond_px: float = checked(4.0, ge=1)  # tissue beyond: background within this of the band, px

@@ -14,8 +14,8 @@ flipped pair, and a left pixel is kept only where the right view maps it back wi
 
 When the frame's tool mask is known, :func:`masked_sgbm_disparity` matches the tissue with the
 tool inpainted out of both views, so that the tool's disparity is not dragged over the tissue
-beside it (foreground fattening), which is where the contact patch reads the tissue (issue 13;
-docs/depth.md has the measurements).
+beside it (foreground fattening), which is where the contact patch reads the tissue
+(docs/depth.md has the measurements).
 
 Disparities are cached per frame outside the session directory (``contact_viz.io.depth_cache``), as
 16-bit PNGs of the fixed-point (1/16 px) disparity, keyed by the session's path, the sizes and
@@ -71,7 +71,7 @@ class SGBMParams:
     min_disparity: int = 0  # smallest disparity searched, px
     block_size: int | None = checked(None, ge=1, odd=True)  # matching block side, px (odd, >= 3); None = from the width
     # when block_size is None: block = width / this, as an odd number >= 3
-    # (128: 5 px at 640, 15 px at 1920; issue 13 chose it and uniqueness 15 on the synthetic study's training
+    # (128: 5 px at 640, 15 px at 1920; chosen, with uniqueness 15, on the synthetic study's training
     # sessions, band pixels within 3 mm of the true depth; Middlebury within 2 px 95.8% -> 94.8%: docs/depth.md)
     width_per_block_px: float = checked(128.0, gt=0)
     p1_factor: int = checked(8, gt=0)  # P1 = p1_factor * channels * block^2: penalty for a 1 px disparity change
