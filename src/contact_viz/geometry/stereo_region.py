@@ -5,8 +5,8 @@ the bleeding test's tissue beyond: 15 px by default) outside them; at 1920x1080 
 frame. :func:`region_sgbm_disparity` therefore
 
 1. shrinks both views once to the matching resolution (``SGBMParams.downscale``, from
-   ``match_width_px``: 1920 px wide -> 640, the width the matcher was tuned at; full-resolution
-   matching of the weakly textured tissue loses most matches beside the tool, docs/depth.md);
+   ``match_width_px``, 960: 1920 px wide -> 960, 1280 -> 640; full-resolution matching of the
+   weakly textured tissue loses most matches beside the tool, docs/depth.md);
 2. runs a **coarse** pass over the whole frame at ``coarse_width_px`` (plain SGBM with the
    left-right check and the median): it feeds the 3D cloud and the depth pane, and gives each
    fine tile its disparity search range;
