@@ -35,9 +35,12 @@ def _progress():
 
     from rich.console import Console
 
-    # on stderr: stdout holds the results only (what the README quotes; what a pipe or script reads)
+    # on stderr, and only on a terminal: stdout holds the results (what the README quotes, what a pipe
+    # reads), and a log file or a CI job gets the one-line messages without a bar's last state
+    console = Console(stderr=True)
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), _Rate(""),
-                    TimeElapsedColumn(), TimeRemainingColumn(), transient=False, console=Console(stderr=True))
+                    TimeElapsedColumn(), TimeRemainingColumn(), transient=False, console=console,
+                    disable=not console.is_terminal)
 
 
 class _LazyProgress:
