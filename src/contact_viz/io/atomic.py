@@ -155,42 +155,30 @@ def sweep_stale(path: str | Path) -> list[Path]:
     """Remove the staging files and folders of ``path`` (:func:`staging_path`) left by processes that
     no longer run (killed with SIGKILL, a power cut); those of live processes are kept. The removed paths."""
     path = Path(path)
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(\d+)-\d+\.[A-Za-z0-9_.-]+$")
-    removed = []
-    try:
-        entries = list(path.parent.iterdir())
-    except OSError:
-        return removed
-    for entry in entries:
-        match = pattern.match(entry.name)
-        if match is None or _alive(int(match.group(1))):
-            continue
-        try:
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry)
-            else:
-                entry.unlink()
-            removed.append(entry)
-        except OSError:
-            pass
-    return removed
+    return _sweep(path.parent, re.compile(rf"^\.{re.escape(path.name)}\.(\d+)-\d+\.[A-Za-z0-9_.-]+$"))
 
 
-_ANY_STAGING = re.compile(r"^\.(.+)\.(\d+)-\d+\.[A-Za-z0-9_.-]+$")
+_ANY_STAGING = re.compile(r"^\..+\.(\d+)-\d+\.[A-Za-z0-9_.-]+$")
 
 
 def sweep_stale_in(directory: str | Path) -> list[Path]:
     """:func:`sweep_stale` for every name at once: remove the staging entries in ``directory`` left by
     processes that no longer run. For folders only this package writes into (a cache), where one
     listing per run is cheaper than one per file. The removed paths."""
+    return _sweep(Path(directory), _ANY_STAGING)
+
+
+def _sweep(directory: Path, pattern: re.Pattern) -> list[Path]:
+    """Remove the entries of ``directory`` whose name matches ``pattern`` (group 1: the writer's pid)
+    and whose writer is gone."""
     removed = []
     try:
-        entries = list(Path(directory).iterdir())
+        entries = list(directory.iterdir())
     except OSError:
         return removed
     for entry in entries:
-        match = _ANY_STAGING.match(entry.name)
-        if match is None or _alive(int(match.group(2))):
+        match = pattern.match(entry.name)
+        if match is None or _alive(int(match.group(1))):
             continue
         try:
             if entry.is_dir() and not entry.is_symlink():
