@@ -69,7 +69,7 @@ for k in range(total or len(data)):
 print(f"played {total or len(data)} frames, at most {late * 1000:.1f} ms late", flush=True)
 """
 SUMMARY = re.compile(r"latency \(files complete -> logged\): median (\S+) ms, 95th percentile (\S+) ms, max (\S+) ms; "
-                     r"(\d+) frames shown only in the series \((\d+) without a distance\), (\d+) timed out")
+                     r"frames shown only in the series: (\d+) \((\d+) without a distance\); timed out: (\d+)")
 
 
 def source(cache: Path, case: str, frames: int) -> Path:
@@ -106,7 +106,7 @@ def run_once(src: Path, work: Path, fps: float, cache_dir: Path) -> dict:
     match = SUMMARY.search(stdout)
     if follower.returncode != 0 or match is None:
         raise SystemExit(f"follower failed ({follower.returncode}):\n{stdout}\n{stderr}")
-    whole = int(re.search(r"^(\d+) frames in", stdout, re.MULTILINE).group(1))
+    whole = int(re.search(r"^(\d+) frames? in", stdout, re.MULTILINE).group(1))
     p50, p95, worst = (float(v) for v in match.groups()[:3])
     return {"whole": whole, "series_only": int(match.group(4)), "no_distance": int(match.group(5)),
             "timed_out": int(match.group(6)), "p50_ms": p50, "p95_ms": p95, "max_ms": worst, "player": played}

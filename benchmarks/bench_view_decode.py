@@ -249,7 +249,7 @@ def run_view(session: Path, out: Path, frames: int, src: Path | None, cache: Pat
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
     text = proc.stdout + proc.stderr
-    own = re.search(r"(\d+) frames in ([\d.]+) s \(([\d.]+) frames/s\)", text)
+    own = re.search(r"(\d+) frames? in ([\d.]+) s \(([\d.]+) frames/s\)", text)
     split = re.search(r"time: next frame ([\d.]+) s, images ([\d.]+) s, prepare ([\d.]+) s, log ([\d.]+) s", text)
     cpu = (after.children_user - before.children_user) + (after.children_system - before.children_system)
     return {"wall": wall, "cpu": cpu, "frames": int(own.group(1)), "own_s": float(own.group(2)),

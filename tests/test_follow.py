@@ -24,7 +24,7 @@ import pytest
 from typer.testing import CliRunner
 
 from contact_viz.cli import app
-from contact_viz.io.live import FollowParams, decodes_completely
+from contact_viz.io.live import FollowParams, SessionFollower, decodes_completely
 from contact_viz.synth import SynthParams, generate_session
 from contact_viz.viz import rerun_log
 from contact_viz.viz.follow import follow_session
@@ -218,8 +218,26 @@ def test_ctrl_c_stops_a_follow_cleanly(finished, tmp_path):
     stdout, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 130, (stdout, stderr)
     assert "interrupted (Ctrl-C): the recording is partial" in stdout and "Traceback" not in stderr
+    # the four frames were there at the start: taken in one poll, the newest whole, the others in the series
+    assert "1 frame in " in stdout
+    assert "frames shown only in the series: 3 (0 without a distance); timed out: 0" in stdout
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # --follow --save writes no footer (docs/live.md): the reader says so
         rec = Recording(out)
     assert sorted(distances(rec)) == [0, 1, 2, 3]
     assert [p for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_the_first_frame_is_found_at_the_next_poll_not_the_next_rescan(finished, tmp_path):
+    """Before its first frame the follower has no stem to probe from: it lists left/ at every poll, so a
+    session started empty is not seen half a second (``rescan_s``) late."""
+    dst = tmp_path / "live"
+    writer = Writer(finished, dst, frames=0)
+    follower = SessionFollower(dst, FollowParams(from_start=True, rescan_s=1e6, settle_s=0.0))
+    assert follower.poll() == []  # the first listing: nothing yet
+    writer.frames = 2
+    writer.fps = 1e6
+    writer.run()
+    arrived = follower.poll()
+    assert [index for index, _ in arrived] == [0, 1]
+    assert list(follower.session.stems) == ["000000", "000001"]

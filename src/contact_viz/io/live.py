@@ -207,7 +207,7 @@ class SessionFollower:
         """Take every frame complete now, in order; (index in the session, when found complete) each."""
         now = time.monotonic()
         found = self._probe()
-        if now - self._last_scan >= self.params.rescan_s:
+        if self.last_stem is None or now - self._last_scan >= self.params.rescan_s:  # nothing to probe from yet
             self._last_scan = now
             found += self._list()
         for stem in found:

@@ -49,8 +49,8 @@ class FollowSummary:
         p50, p95, worst = self.latency_ms
         out = self.run.lines()
         out.insert(1, f"latency (files complete -> logged): median {p50:.0f} ms, 95th percentile {p95:.0f} ms, "
-                      f"max {worst:.0f} ms; {self.frames_series_only} frames shown only in the series "
-                      f"({self.frames_unfiltered} without a distance), {self.frames_timed_out} timed out")
+                      f"max {worst:.0f} ms; frames shown only in the series: {self.frames_series_only} "
+                      f"({self.frames_unfiltered} without a distance); timed out: {self.frames_timed_out}")
         if self.stop == "idle":
             out.insert(1, "stopped: no new frame within --idle-timeout")
         return out

@@ -132,7 +132,7 @@ class RunSummary:
 
     def lines(self) -> list[str]:
         """A short human-readable report."""
-        out = [f"{self.frames} frames in {self.elapsed_s:.1f} s ({self.frames_per_s:.1f} frames/s)"
+        out = [f"{self.frames} frame{'' if self.frames == 1 else 's'} in {self.elapsed_s:.1f} s ({self.frames_per_s:.1f} frames/s)"
                + (f", {self.stop_name}: the recording is partial" if self.interrupted else "")]
         out.append(f"time: next frame {self.wait_s:.1f} s, images {self.image_wait_s:.1f} s, "
                    f"prepare {self.prepare_s:.1f} s, log {self.log_s:.1f} s")
