@@ -184,3 +184,37 @@ def test_every_command_has_a_readme_row_and_docs_section():
 ])
 def test_slug_follows_github(heading, slug):
     assert _slug(heading) == slug
+
+
+def _options_of(name: str) -> set[str]:
+    import typer
+
+    from contact_viz.cli import app
+
+    group = typer.main.get_command(app)
+    command = group.get_command(type(group).context_class(group, info_name="contact-viz"), name)
+    params = [*command.params, *group.params]  # the group's (--verbose) are accepted after the command too
+    return {opt for param in params for opt in (*param.opts, *param.secondary_opts)} | {"--help"}
+
+
+_COMMAND_LINE = re.compile(r"\bcontact-viz((?:[ \t]+[^\s`|#]+)+)")
+
+
+def test_every_option_quoted_in_the_docs_exists():
+    """Each `contact-viz ...` line in README and docs/ (code blocks, tables, text) uses only options its
+    command has: a renamed or removed option cannot stay in the docs."""
+    commands = set(_command_names())
+    wrong = []
+    for page in _doc_pages():
+        if page == COMMANDS_MD:
+            continue
+        for number, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1):
+            for match in _COMMAND_LINE.finditer(line):
+                words = match.group(1).split()
+                name = words[0] if words[0] in commands else "view"  # `contact-viz SESSION` is `view`
+                known = _options_of(name)
+                for word in words:
+                    option = word.split("=", 1)[0].rstrip(".,;:)")
+                    if option.startswith("--") and len(option) > 2 and option not in known:
+                        wrong.append(f"{_rel(page)}:{number}: `contact-viz {name}` has no option {option}")
+    assert not wrong, "\n".join(wrong)
