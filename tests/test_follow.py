@@ -241,3 +241,26 @@ def test_the_first_frame_is_found_at_the_next_poll_not_the_next_rescan(finished,
     arrived = follower.poll()
     assert [index for index, _ in arrived] == [0, 1]
     assert list(follower.session.stems) == ["000000", "000001"]
+
+
+def test_a_session_made_after_the_follower_started_is_followed(finished, extracted, tmp_path):
+    """The recorder may make the session after the follower starts (synth --live renders ahead first)."""
+    dst = tmp_path / "live"
+    recorder = threading.Timer(0.5, lambda: Writer(finished, dst, fps=40).run())  # makes it 0.5 s from now
+    recorder.start()
+    summary, rec, messages = follow(dst, tmp_path / "f.rrd", FollowParams(from_start=True, idle_timeout_s=3.0))
+    recorder.join()
+    assert messages == [] and summary.stop == "idle"
+    got = distances(rec)
+    assert sorted(got) == list(range(N))
+    assert got[N - 1] == pytest.approx(float(extracted[N - 1]["distance_m"]) * 1000, abs=1e-9)
+
+
+def test_no_session_within_the_idle_timeout_stops_cleanly(tmp_path):
+    result = CliRunner().invoke(app, ["view", str(tmp_path / "never"), "--follow", "--idle-timeout", "0.3",
+                                      "--save", str(tmp_path / "f.rrd")])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert "0 frames in " in result.output and "stopped: no new frame within --idle-timeout" in lines
+    assert "no frame logged; timed out: 0" in lines and "nan" not in result.output
+    assert not (tmp_path / "never").exists()  # nothing made where the session was to be

@@ -48,9 +48,12 @@ class FollowSummary:
     def lines(self) -> list[str]:
         p50, p95, worst = self.latency_ms
         out = self.run.lines()
-        out.insert(1, f"latency (files complete -> logged): median {p50:.0f} ms, 95th percentile {p95:.0f} ms, "
-                      f"max {worst:.0f} ms; frames shown only in the series: {self.frames_series_only} "
-                      f"({self.frames_unfiltered} without a distance); timed out: {self.frames_timed_out}")
+        if math.isnan(p50):  # no frame was logged whole
+            out.insert(1, f"no frame logged; timed out: {self.frames_timed_out}")
+        else:
+            out.insert(1, f"latency (files complete -> logged): median {p50:.0f} ms, 95th percentile {p95:.0f} ms, "
+                          f"max {worst:.0f} ms; frames shown only in the series: {self.frames_series_only} "
+                          f"({self.frames_unfiltered} without a distance); timed out: {self.frames_timed_out}")
         if self.stop == "idle":
             out.insert(1, "stopped: no new frame within --idle-timeout")
         return out
@@ -76,12 +79,12 @@ def follow_session(
     if options.hand_eye is not None:
         raise ValueError("--hand-eye: not available with --follow (kinematics.csv is read whole)")
     started = last_new = time.monotonic()
-    while not (Path(root) / "left").is_dir():  # the recorder has not made the session yet: wait for it
-        if params.idle_timeout_s is not None and time.monotonic() - started > params.idle_timeout_s:
-            break
-        if stop is not None and stop():
-            break
-        time.sleep(max(params.poll_s, 0.05))
+    try:
+        waited = _wait_for_session(Path(root), params, stop, started)
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP before the session appeared
+        return _no_frame(started, "interrupted", getattr(exc, "signum", 2))
+    if waited is not None:  # no session appeared: stopped as if idle (or by the caller) before any frame
+        return _no_frame(started, waited)
     follower = SessionFollower(root, params, **(open_kwargs or {}))
     logger: FrameLogger | None = None
     latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
@@ -133,14 +136,38 @@ def follow_session(
                                     interrupted=interrupted, stop_signal=stop_signal)
         flush(rec)
     if summary is None:
-        summary = RunSummary(frames=0, bad_frames=0, diagnostic_counts={}, interrupted=interrupted,
-                             stop_signal=stop_signal, elapsed_s=time.monotonic() - started, wait_s=0.0,
-                             image_wait_s=0.0, prepare_s=0.0, log_s=0.0)
+        summary = _empty_run(started, interrupted, stop_signal)
     lat = np.asarray(latencies, dtype=np.float64)
     figures = (float(np.median(lat)), float(np.percentile(lat, 95)), float(lat.max())) if lat.size else (
         math.nan, math.nan, math.nan)
     return FollowSummary(run=summary, frames_series_only=series_only, frames_unfiltered=unfiltered,
                          frames_timed_out=len(follower.skipped), latency_ms=figures, stop=why)
+
+
+def _wait_for_session(root: Path, params: FollowParams, stop: Callable[[], bool] | None,
+                      started: float) -> str | None:
+    """Wait for the recorder to make the session (its left/ folder): None once it has, else the stop
+    reason of a run that took no frame: "idle" (--idle-timeout passed) or "" (``stop()``)."""
+    while not (root / "left").is_dir():
+        if params.idle_timeout_s is not None and time.monotonic() - started > params.idle_timeout_s:
+            return "idle"
+        if stop is not None and stop():
+            return ""
+        time.sleep(max(params.poll_s, 0.05))
+    return None
+
+
+def _empty_run(started: float, interrupted: bool, stop_signal: int) -> RunSummary:
+    """The summary of a run that logged no frame."""
+    return RunSummary(frames=0, bad_frames=0, diagnostic_counts={}, interrupted=interrupted,
+                      stop_signal=stop_signal, elapsed_s=time.monotonic() - started,
+                      wait_s=0.0, image_wait_s=0.0, prepare_s=0.0, log_s=0.0)
+
+
+def _no_frame(started: float, why: str, stop_signal: int = 0) -> FollowSummary:
+    """A follow that stopped (``why``) before the recorder made the session."""
+    return FollowSummary(run=_empty_run(started, why == "interrupted", stop_signal), frames_series_only=0,
+                         frames_unfiltered=0, frames_timed_out=0, latency_ms=(math.nan,) * 3, stop=why)
 
 
 def _result(session, index: int, options: DebuggerOptions) -> FrameResult:
