@@ -218,13 +218,15 @@ def test_ctrl_c_stops_a_follow_cleanly(finished, tmp_path):
     stdout, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 130, (stdout, stderr)
     assert "interrupted (Ctrl-C): the recording is partial" in stdout and "Traceback" not in stderr
-    # the four frames were there at the start: taken in one poll, the newest whole, the others in the series
-    assert "1 frame in " in stdout
-    assert "frames shown only in the series: 3 (0 without a distance); timed out: 0" in stdout
+    lines = stdout.splitlines()  # the four frames were there at the start: replayed whole, no latency
+    assert "replayed 4 frames there at the start (--from-start)" in lines and "4 frames in " in stdout
+    assert ("latency (files complete -> logged): none (no frame arrived after the start); frames shown only in "
+            "the series: 0 (0 without a distance); timed out: 0") in lines
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # --follow --save writes no footer (docs/live.md): the reader says so
         rec = Recording(out)
     assert sorted(distances(rec)) == [0, 1, 2, 3]
+    assert rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer") == [0, 1, 2, 3]  # each shown whole
     assert [p for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
@@ -262,5 +264,6 @@ def test_no_session_within_the_idle_timeout_stops_cleanly(tmp_path):
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     assert "0 frames in " in result.output and "stopped: no new frame within --idle-timeout" in lines
-    assert "no frame logged; timed out: 0" in lines and "nan" not in result.output
+    assert "latency (files complete -> logged): none (no frame arrived after the start); frames shown only in the " \
+           "series: 0 (0 without a distance); timed out: 0" in lines and "nan" not in result.output
     assert not (tmp_path / "never").exists()  # nothing made where the session was to be

@@ -357,8 +357,8 @@ def view(
                                 "tool-width check (docs/diagnostics.md).")] = 8.0,
     follow: Annotated[bool, typer.Option("--follow", help="Follow a session being recorded: log each new frame "
                       "as soon as its files are complete (docs/live.md).")] = False,
-    from_start: Annotated[bool, typer.Option("--from-start", help="--follow: take the frames already there "
-                          "first (default: start after them).")] = False,
+    from_start: Annotated[bool, typer.Option("--from-start", help="--follow: replay the frames already there "
+                          "first, each shown whole (default: start after them).")] = False,
     idle_timeout: Annotated[Optional[float], typer.Option(min=0.001, help="--follow: stop after this many seconds "
                             "without a new frame [default: never; Ctrl-C stops].")] = None,
     frame_timeout: Annotated[float, typer.Option(min=0.001, help="--follow: skip a frame whose mask, depth or "

@@ -167,6 +167,7 @@ class SessionFollower:
         self._last_scan = -math.inf
         self.started = time.monotonic()
         existing = sorted(self._list(), key=natural_key)
+        self.backlog: set[str] = set(existing) if params.from_start else set()  # there at the start, not taken yet
         if not params.from_start and existing:  # start after the frames already there
             self.last_stem = existing[-1]
             self.done.update(existing)
@@ -285,6 +286,13 @@ class SessionFollower:
         session.extend(stems, by_layer, times)
         self.done.update(stems)
         return [(first + i, now) for i in range(len(stems))]
+
+    def from_backlog(self, stem: str) -> bool:
+        """Whether a frame taken was there when following started (``from_start``); asked once per frame."""
+        if stem in self.backlog:
+            self.backlog.discard(stem)
+            return True
+        return False
 
     def take_force_rows(self) -> list[dict[str, str]]:
         """force.csv rows read since the last call."""

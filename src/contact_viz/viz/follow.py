@@ -2,8 +2,9 @@
 complete (:class:`contact_viz.io.live.SessionFollower`), through the same per-frame path as a
 finished session (:class:`contact_viz.viz.frame_log.FrameLogger`), with the causal posterior.
 
-Falling behind: when several frames are complete at once, the newest is shown whole and the older
-ones only in the series (distance, signal, posterior): the causal filter sees every frame. With SGBM
+With ``from_start``, the frames there at the start are shown whole, one after another (a replay;
+they are not counted in the latency). Falling behind: when several new frames are complete at once,
+the newest is shown whole and the older ones only in the series (distance, signal, posterior): the causal filter sees every frame. With SGBM
 depth (no depth/ in the session) a frame shown only in the series is not matched either: the filter
 then steps over it without an observation, and the summary counts it. The lag (a frame's files
 complete -> its data logged, ms) is a series of its own (``series/lag_ms``).
@@ -42,18 +43,21 @@ class FollowSummary:
     frames_series_only: int  # frames shown only in the series (the follower was behind)
     frames_unfiltered: int  # of those, frames without a distance (SGBM not run): the filter stepped over them
     frames_timed_out: int  # frames whose files never completed (skipped with a warning)
+    frames_replayed: int  # --from-start: frames there at the start, logged whole (not in the latency)
     latency_ms: tuple[float, float, float]  # median, 95th percentile, max of complete -> logged (whole frames), ms
     stop: str  # "idle" (no new frame for --idle-timeout), "interrupted", or "" (stopped by the caller)
 
     def lines(self) -> list[str]:
         p50, p95, worst = self.latency_ms
         out = self.run.lines()
-        if math.isnan(p50):  # no frame was logged whole
-            out.insert(1, f"no frame logged; timed out: {self.frames_timed_out}")
-        else:
-            out.insert(1, f"latency (files complete -> logged): median {p50:.0f} ms, 95th percentile {p95:.0f} ms, "
-                          f"max {worst:.0f} ms; frames shown only in the series: {self.frames_series_only} "
-                          f"({self.frames_unfiltered} without a distance); timed out: {self.frames_timed_out}")
+        latency = ("none (no frame arrived after the start)" if math.isnan(p50) else
+                   f"median {p50:.0f} ms, 95th percentile {p95:.0f} ms, max {worst:.0f} ms")
+        out.insert(1, f"latency (files complete -> logged): {latency}; frames shown only in the series: "
+                      f"{self.frames_series_only} ({self.frames_unfiltered} without a distance); "
+                      f"timed out: {self.frames_timed_out}")
+        if self.frames_replayed:
+            n = self.frames_replayed
+            out.insert(1, f"replayed {n} frame{'' if n == 1 else 's'} there at the start (--from-start)")
         if self.stop == "idle":
             out.insert(1, "stopped: no new frame within --idle-timeout")
         return out
@@ -88,7 +92,7 @@ def follow_session(
     follower = SessionFollower(root, params, **(open_kwargs or {}))
     logger: FrameLogger | None = None
     latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
-    series_only = unfiltered = 0
+    series_only = unfiltered = replayed = 0
     interrupted, stop_signal, why = False, 0, ""
     try:
         while True:
@@ -107,8 +111,12 @@ def follow_session(
             session = follower.session
             if logger is None:
                 logger = FrameLogger(session, rec, replace(options, start=0, end=None, stride=1), model)
-            for index, _ in arrived[:-1]:  # behind: shown in the series only
-                series_only += 1
+            for index, _ in arrived[:-1]:
+                if follower.from_backlog(session.stems[index]):  # --from-start: there at the start, shown whole
+                    replayed += 1
+                    logger.log(_result(session, index, options), logger.reader.load(index))
+                    continue
+                series_only += 1  # behind: shown in the series only
                 result = _result(session, index, options) if session.depth_source != "sgbm" else None
                 if result is None:
                     unfiltered += 1
@@ -116,11 +124,13 @@ def follow_session(
                                                   None), None)
                 logger.log_series_only(result)
             index, complete_at = arrived[-1]
-            result = _result(session, index, options)
-            logger.log(result, logger.reader.load(index))
-            lag_ms = (time.monotonic() - complete_at) * 1000
-            latencies.append(lag_ms)
-            rec.log(ENTITY_SERIES_LAG, rr.Scalars(lag_ms))
+            logger.log(_result(session, index, options), logger.reader.load(index))
+            if follower.from_backlog(session.stems[index]):  # its files completed before the run: no latency
+                replayed += 1
+            else:
+                lag_ms = (time.monotonic() - complete_at) * 1000
+                latencies.append(lag_ms)
+                rec.log(ENTITY_SERIES_LAG, rr.Scalars(lag_ms))
             _log_force(rec, follower, logger)
             if logger.done % options.flush_every == 0:
                 flush(rec)
@@ -141,6 +151,7 @@ def follow_session(
     figures = (float(np.median(lat)), float(np.percentile(lat, 95)), float(lat.max())) if lat.size else (
         math.nan, math.nan, math.nan)
     return FollowSummary(run=summary, frames_series_only=series_only, frames_unfiltered=unfiltered,
+                         frames_replayed=replayed,
                          frames_timed_out=len(follower.skipped), latency_ms=figures, stop=why)
 
 
@@ -167,7 +178,8 @@ def _empty_run(started: float, interrupted: bool, stop_signal: int) -> RunSummar
 def _no_frame(started: float, why: str, stop_signal: int = 0) -> FollowSummary:
     """A follow that stopped (``why``) before the recorder made the session."""
     return FollowSummary(run=_empty_run(started, why == "interrupted", stop_signal), frames_series_only=0,
-                         frames_unfiltered=0, frames_timed_out=0, latency_ms=(math.nan,) * 3, stop=why)
+                         frames_unfiltered=0, frames_timed_out=0, frames_replayed=0,
+                         latency_ms=(math.nan,) * 3, stop=why)
 
 
 def _result(session, index: int, options: DebuggerOptions) -> FrameResult:
