@@ -377,6 +377,26 @@ def test_depth_command_whose_only_output_is_the_cache_fails_on_a_full_disk(data,
     assert _inputs(data) == inputs
 
 
+def test_depth_command_whose_cache_fills_up_during_the_run_stops_with_one_line(long_stereo, tmpfs, tmp_path):
+    """`depth` without -o on a cache with room for its probe and a few entries: the run stops when the
+    disk fills (one error line naming the cache, no warning first), it does not report the frames as done;
+    the entries stored before are whole, and the next run with room reuses them."""
+    cache = tmpfs("filling", leave_kb=72) / "cache"
+    inputs = tree_hash(long_stereo["session"])
+    done = run("depth", long_stereo["session"], "--cache-dir", cache, cwd=tmp_path)
+    line = error_line(done, cache)
+    assert "no space left on the device" in line and "warning:" not in done.stderr, done.stderr
+    assert "computed" not in done.stdout, done.stdout
+    stored = cache_entries(cache)
+    assert 0 < len(stored) < 40 and not staging_files(cache.parent)
+    roomy = tmp_path / "roomy"
+    shutil.copytree(cache, roomy)
+    done = run("depth", long_stereo["session"], "--cache-dir", roomy, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert f"{40 - len(stored)} computed" in done.stdout and f"{len(stored)} from cache" in done.stdout, done.stdout
+    assert tree_hash(long_stereo["session"]) == inputs
+
+
 def test_features_cache_on_a_full_disk_only_warns(data, full, tmp_path):
     """predict's features cache (kept for fit / evaluate / predict) on a full disk: a warning, the same output."""
     clean = tmp_path / "clean.csv"

@@ -101,7 +101,7 @@ class DisparityCache:
         self.directory = directory
         self.params = params
         self.writable = directory is not None
-        self.problem: OSError | None = None  # why the cache cannot be written (probe), as an error about the folder
+        self.problem: OSError | None = None  # why the cache cannot be written (probe, or a write), as an error about the folder
         self._warned = False
 
     @classmethod
@@ -150,12 +150,14 @@ class DisparityCache:
                 probe.unlink(missing_ok=True)
         except OSError as exc:
             self.writable = False
-            self.problem = OSError(exc.errno, exc.strerror, str(self.directory)) if exc.errno else exc
-            self._warn(exc)
+            self._failed(exc)
         return self.writable
 
-    def _warn(self, exc: OSError) -> None:
-        """Once per cache object: ``DIR: could not write the depth cache (what went wrong); ...``."""
+    def _failed(self, exc: OSError) -> None:
+        """A write failed: keep why, as an error about the folder (:attr:`problem`), and warn once:
+        ``DIR: could not write the depth cache (what went wrong); ...``."""
+        if self.problem is None:
+            self.problem = OSError(exc.errno, exc.strerror, str(self.directory)) if exc.errno else exc
         if self._warned:
             return
         self._warned = True
@@ -187,7 +189,8 @@ class DisparityCache:
         return None if code is None else _decode(code, self.params)
 
     def save(self, path: Path | None, disparity: np.ndarray) -> None:
-        """Store a disparity atomically; a failure only warns (once) and disables nothing else."""
+        """Store a disparity atomically; a failure only warns (once), is kept in :attr:`problem` and disables
+        nothing else."""
         if path is None or not self.writable:
             return
         ok, data = cv2.imencode(".png", _encode(disparity, self.params), [cv2.IMWRITE_PNG_COMPRESSION, 1])
@@ -198,7 +201,7 @@ class DisparityCache:
             with atomic_write(path, "wb", sweep=False) as handle:
                 handle.write(data.tobytes())
         except OSError as exc:
-            self._warn(exc)
+            self._failed(exc)
 
     def disparity(
         self,

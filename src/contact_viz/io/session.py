@@ -236,6 +236,12 @@ class Session:
     def __len__(self) -> int:
         return len(self.stems)
 
+    @property
+    def sgbm_cache(self):
+        """The cache of the SGBM depth (:class:`~contact_viz.io.depth_cache.DisparityCache`), None unless the
+        depth comes from SGBM."""
+        return self._sgbm
+
     def __repr__(self) -> str:
         height, width = self.image_size
         return f"Session({self.name!r}, {len(self)} frames, {width}x{height} px, root={str(self.root)!r})"

@@ -17,6 +17,7 @@ import numpy as np
 
 from contact_viz.errors import SessionError
 from contact_viz.io.atomic import reported_as, staging_path, sweep_stale
+from contact_viz.io.depth_cache import CacheWarning
 
 from contact_viz.geometry.stereo import DEPTH_METHODS, SGBMParams
 
@@ -75,6 +76,7 @@ def precompute_depth(
     output: str | Path | None = None,
     workers: int = 2,
     progress: Callable[[int, int], None] | None = None,
+    require_cache: bool = False,
 ) -> DepthRunSummary:
     """Compute (or load from the cache) the depth of every frame of an opened ``session``.
 
@@ -82,7 +84,9 @@ def precompute_depth(
     also uses OpenCV's own threads). With ``output``, each frame's depth is also written as
     ``<output>/<stem>.npy`` (float32 m, NaN invalid, rectified left view); ``output`` must be new
     or empty and outside the session directory, and is filled through a temporary folder beside
-    it that is renamed at the end. ``progress(done, total)`` is called after each frame.
+    it that is renamed at the end. ``progress(done, total)`` is called after each frame. With
+    ``require_cache`` (the cache is the only output), an entry that cannot be stored (a disk that fills up)
+    stops the run with the cache's error instead of a warning.
     """
     from contact_viz.io.session import BadFrame
 
@@ -109,11 +113,14 @@ def precompute_depth(
     def one(index: int):
         return index, session.load_depth(index, with_origin=True)
 
+    cache = session.sgbm_cache if require_cache else None
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="contact-viz-depth")
     try:
-        with reported_as(out_dir, tmp_dir) if tmp_dir is not None else contextlib.nullcontext(), \
-                ThreadPoolExecutor(max_workers=workers, thread_name_prefix="contact-viz-depth") as pool:
+        with reported_as(out_dir, tmp_dir) if tmp_dir is not None else contextlib.nullcontext():
             done = 0
             for index, result in pool.map(one, range(total)):
+                if cache is not None and cache.problem is not None:
+                    raise cache.problem
                 stem = session.stems[index]
                 if isinstance(result, BadFrame):
                     failed.append(f"{stem}: {result.reason}")
@@ -132,6 +139,8 @@ def precompute_depth(
                 os.replace(tmp_dir, out_dir)
                 tmp_dir = None
     finally:
+        # a stop (an error, a signal) waits for the frames being matched, not for those queued behind them
+        pool.shutdown(wait=True, cancel_futures=True)
         if tmp_dir is not None:
             shutil.rmtree(tmp_dir, ignore_errors=True)
     handled = total - len(failed)
@@ -172,12 +181,16 @@ def run_depth_command(
         warnings.simplefilter("always")
         session = open_session(session_dir, cache_dir=cache_dir, depth_method=method, sgbm_params=params,
                                require_masks=False)
-    problem = getattr(getattr(session, "_sgbm", None), "problem", None)
-    if problem is not None and output is None:  # filling the cache is all this command would do: an error
-        raise problem
+    cache = session.sgbm_cache
+    if cache is not None and cache.problem is not None and output is None:  # filling the cache is all this
+        raise cache.problem  # command would do: an error
     for w in caught:  # otherwise (depth files written to -o) the warnings, as they came
         warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-    summary = precompute_depth(session, output=output, workers=workers, progress=progress)
+    with warnings.catch_warnings():  # without -o, a cache that fills up is the error raised below, not a warning
+        if output is None:
+            warnings.simplefilter("ignore", CacheWarning)
+        summary = precompute_depth(session, output=output, workers=workers, progress=progress,
+                                   require_cache=output is None)
     lines = [session.depth_note] + summary.lines()
     if summary.frames and len(summary.failed) == summary.frames:
         raise SessionError(session.root, "no frame's depth could be computed:\n" + "\n".join(summary.failed[:5]))
