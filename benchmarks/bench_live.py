@@ -14,6 +14,7 @@ get no distance). Keeping up = every frame after the first few logged whole.
     python benchmarks/bench_live.py                       # the three cases of the README
     python benchmarks/bench_live.py --case 720p-depth --frames 300 --repeats 3
     python benchmarks/bench_live.py --memory 12000     # the follower's memory over a long session
+    python benchmarks/bench_live.py --compare OLD/src NEW/src --repeats 3   # two source trees side by side
 """
 
 from __future__ import annotations
@@ -86,7 +87,11 @@ def source(cache: Path, case: str, frames: int) -> Path:
     return out
 
 
-def run_once(src: Path, work: Path, fps: float, cache_dir: Path) -> dict:
+def run_once(src: Path, work: Path, fps: float, cache_dir: Path, tree: Path | None = None) -> dict:
+    """One follow of ``src`` played at ``fps``; ``tree``: the source tree (its src/) the follower runs from."""
+    env = dict(os.environ)
+    if tree is not None:
+        env["PYTHONPATH"] = str(tree)
     live = work / "live"
     shutil.rmtree(live, ignore_errors=True)
     live.mkdir(parents=True)
@@ -96,7 +101,7 @@ def run_once(src: Path, work: Path, fps: float, cache_dir: Path) -> dict:
     follower = subprocess.Popen([sys.executable, "-m", "contact_viz.cli", "view", str(live), "--follow",
                                  "--from-start", "--idle-timeout", "3", "--save", str(work / "out.rrd"),
                                  "--cache-dir", str(cache_dir)],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     time.sleep(2.0)  # the follower's start-up (imports) before the first frame
     player.stdin.write("go\n")
     player.stdin.flush()
@@ -151,7 +156,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--dir", type=Path, default=Path("/tmp/contact-viz-bench-live"))
+    parser.add_argument("--work", type=Path, default=Path("/dev/shm/contact-viz-bench-live") if Path("/dev/shm").is_dir()
+                        else None, help="where the live session is written [default: a tmpfs, /dev/shm: at 1080p the "
+                        "recorder writes 250 MB/s (8 MB of depth a frame), more than this machine's disk takes "
+                        "without stalling it; else under --dir]")
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--compare", type=Path, nargs="+", metavar="TREE/src",
+                        help="follow with each of these source trees in turn (interleaved runs, the order rotating "
+                        "every round), side by side; default: the installed package")
     parser.add_argument("--memory", type=int, metavar="FRAMES", help="only measure the follower's memory over a "
                         "160x96 session of FRAMES frames played at 100 frames/s")
     args = parser.parse_args()
@@ -159,20 +171,32 @@ def main() -> None:
     if args.memory:
         memory(args.dir, args.memory)
         return
+    work = args.work or args.dir / "work"
+    print(f"the live session is written to {work}")
     figures = {}
-    print(f"{'case':<13} {'fps':>4} {'frames':>6} {'whole':>6} {'series only':>11} {'no distance':>11} "
+    trees = [tree.resolve() for tree in args.compare] if args.compare else [None]
+    names = [f"{k + 1}: {tree}" if tree is not None else "installed" for k, tree in enumerate(trees)]
+    print(f"{'case':<13} {'tree':<6} {'fps':>4} {'frames':>6} {'whole':>6} {'series only':>11} {'no distance':>11} "
           f"{'median ms':>9} {'p95 ms':>7} {'max ms':>7}")
     for case in args.case or list(CASES):
         _, _, fps = CASES[case]
         src = source(args.dir, case, args.frames)
-        runs = [run_once(src, args.dir / "work", fps, args.dir / "cache") for _ in range(args.repeats)]
-        med = {k: statistics.median(r[k] for r in runs) for k in runs[0] if k != "player"}
-        figures[case] = {"fps": fps, "frames": args.frames, "runs": runs, "median": med}
-        print(f"{case:<13} {fps:>4.0f} {args.frames:>6} {med['whole']:>6.0f} {med['series_only']:>11.0f} "
-              f"{med['no_distance']:>11.0f} {med['p50_ms']:>9.0f} {med['p95_ms']:>7.0f} {med['max_ms']:>7.0f}")
-        for r in runs:
-            print(f"    run: {r['whole']} whole, {r['series_only']} series only, median {r['p50_ms']:.0f} ms, "
-                  f"p95 {r['p95_ms']:.0f} ms; player: {r['player']}")
+        runs: dict[int, list[dict]] = {k: [] for k in range(len(trees))}
+        for round_ in range(args.repeats):  # interleaved: the machine's speed drifts
+            for k in (round_ + j for j in range(len(trees))):
+                k %= len(trees)
+                runs[k].append(run_once(src, work, fps, args.dir / "cache", trees[k]))
+        for k, name in enumerate(names):
+            med = {key: statistics.median(r[key] for r in runs[k]) for key in runs[k][0] if key != "player"}
+            figures.setdefault(case, {})[name] = {"fps": fps, "frames": args.frames, "runs": runs[k], "median": med}
+            print(f"{case:<13} {k + 1:<6} {fps:>4.0f} {args.frames:>6} {med['whole']:>6.0f} "
+                  f"{med['series_only']:>11.0f} {med['no_distance']:>11.0f} {med['p50_ms']:>9.0f} "
+                  f"{med['p95_ms']:>7.0f} {med['max_ms']:>7.0f}")
+            for r in runs[k]:
+                print(f"    run: {r['whole']} whole, {r['series_only']} series only, median {r['p50_ms']:.0f} ms, "
+                      f"p95 {r['p95_ms']:.0f} ms; player: {r['player']}")
+    for k, name in enumerate(names):
+        print(f"tree {k + 1}: {name}")
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2))
 

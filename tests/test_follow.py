@@ -162,6 +162,28 @@ def test_a_reader_never_takes_a_half_written_file(finished, tmp_path):
             assert not decodes_completely(part, cut), (path.name, cut)
 
 
+def test_a_jpeg_cut_after_its_exif_thumbnail_is_not_complete(finished, tmp_path):
+    """A camera's JPEG carries a thumbnail (a JPEG of its own, ending 0xFF 0xD9) in its EXIF segment: a
+    file written in place up to the end of that thumbnail ends with an end-of-image marker too."""
+    import cv2
+
+    thumb = cv2.imencode(".jpg", np.full((8, 8, 3), 90, np.uint8))[1].tobytes()
+    payload = b"Exif\x00\x00" + thumb
+    app1 = b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload
+    main = next((finished / "left").iterdir()).read_bytes()
+    whole = main[:2] + app1 + main[2:]
+    path = tmp_path / "exif.jpg"
+    path.write_bytes(whole)
+    assert cv2.imread(str(path)) is not None and decodes_completely(path, len(whole))
+    cut = 2 + len(app1)
+    assert whole[cut - 2:cut] == b"\xff\xd9"
+    path.write_bytes(whole[:cut])
+    assert not decodes_completely(path, cut)
+    for cut in (len(whole) - 1, len(whole) // 2, 2 + len(app1) + 10):
+        path.write_bytes(whole[:cut])
+        assert not decodes_completely(path, cut), cut
+
+
 def test_a_missing_mask_times_out_with_one_warning_naming_it(finished, extracted, tmp_path):
     dst = tmp_path / "live"
     writer = Writer(finished, dst, fps=15, drop=("masks", 5))

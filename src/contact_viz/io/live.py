@@ -4,8 +4,9 @@ The recorder contract (README, "Live"): write each file under a temporary name i
 name starting with ``.`` or ending in ``.tmp``/``.part``) and rename it into place when complete;
 append whole lines to ``frames.csv`` and ``force.csv``. Recorders that write in place are coped
 with: a file is taken only when it decodes completely (PNG ends with its IEND chunk, JPEG with its
-EOI marker, ``.npy`` holds all the bytes its header announces) and its size and time have not
-changed for ``settle_s``; a CSV line only once it ends with a newline.
+EOI marker after its header segments, ``.npy`` holds all the bytes its header announces) and its size
+and time have not changed for ``settle_s`` (two looks one poll apart); a CSV line only once it ends
+with a newline.
 
 A frame is complete when its left image, its mask, its depth or disparity (when the session has
 that folder), its right image (when it has right/) and its ``frames.csv`` row (when it has that
@@ -48,7 +49,7 @@ class FollowParams:
     """How a session being recorded is followed."""
 
     poll_s: float = checked(0.005, gt=0)  # how often the folders are looked at, s
-    settle_s: float = checked(0.02, ge=0)  # a file counts once its size and time have held this long, s
+    settle_s: float = checked(0.005, ge=0)  # a file counts once its size and time have held this long, s
     frame_timeout_s: float = checked(5.0, gt=0)  # after its left image, how long a frame's other files may take, s
     idle_timeout_s: float | None = checked(None, gt=0)  # stop after this long without a new frame, s; None: never
     from_start: bool = False  # take the frames already there first (else start after the last of them)
@@ -67,8 +68,7 @@ def decodes_completely(path: Path, size: int) -> bool:
                 handle.seek(max(size - len(PNG_END), 0))
                 return handle.read(len(PNG_END)) == PNG_END
             if suffix in (".jpg", ".jpeg"):
-                handle.seek(max(size - len(JPEG_END), 0))
-                return handle.read(len(JPEG_END)) == JPEG_END
+                return _jpeg_complete(handle, size)
             if suffix == ".npy":
                 version = np.lib.format.read_magic(handle)
                 read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
@@ -80,6 +80,31 @@ def decodes_completely(path: Path, size: int) -> bool:
     return True
 
 
+def _jpeg_complete(handle, size: int) -> bool:
+    """A JPEG's start-of-image marker, its header segments (skipped by their lengths: an EXIF thumbnail's
+    own end-of-image marker is inside them) up to the first start-of-scan, and the end-of-image marker as its
+    last two bytes (in the scan data a 0xFF byte is never followed by 0xD9)."""
+    handle.seek(0)
+    if handle.read(2) != b"\xff\xd8":
+        return False
+    position = 2
+    while True:
+        handle.seek(position)
+        marker = handle.read(4)
+        if len(marker) < 4 or marker[0] != 0xFF:
+            return False
+        if marker[1] == 0xFF:  # a fill byte before the marker
+            position += 1
+        elif marker[1] == 0xDA:  # start of scan: the entropy-coded data follows
+            break
+        else:
+            position += 2 + int.from_bytes(marker[2:4], "big")
+        if position >= size:
+            return False
+    handle.seek(size - len(JPEG_END))
+    return handle.read(len(JPEG_END)) == JPEG_END
+
+
 class _FileWatch:
     """When each file was first seen complete-looking, to tell a finished file from one being written."""
 
@@ -87,11 +112,13 @@ class _FileWatch:
         self.settle_s = settle_s
         self._seen: dict[Path, tuple[int, int, float]] = {}  # path -> (size, mtime ns, when first seen so)
 
-    def complete(self, path: Path, now: float) -> bool:
+    def complete(self, path: Path, now: float) -> float | None:
+        """When the file was completed (its status change time: the rename into place, or the last write;
+        ``time.time()`` seconds), or None while it is missing or not complete."""
         try:
             st = os.stat(path)
         except OSError:
-            return False
+            return None
         key = (st.st_size, st.st_mtime_ns)
         seen = self._seen.get(path)
         if seen is None or seen[:2] != key:
@@ -99,9 +126,9 @@ class _FileWatch:
             seen = self._seen[path]
         steady = now - seen[2] >= self.settle_s or time.time() - st.st_mtime_ns / 1e9 >= self.settle_s
         if st.st_size == 0 or not steady or not decodes_completely(path, st.st_size):
-            return False
+            return None
         del self._seen[path]
-        return True
+        return max(st.st_ctime_ns, st.st_mtime_ns) / 1e9
 
 
 class CsvTail:
@@ -159,6 +186,7 @@ class SessionFollower:
         self.frames_csv = CsvTail(self.root / "frames.csv") if (self.root / "frames.csv").is_file() else None
         self.force_csv = CsvTail(self.root / "force.csv")
         self.times: dict[str, float] = {}  # frames.csv rows not yet used: stem -> s
+        self.row_read: dict[str, float] = {}  # when those rows were read (time.time() s)
         self.files = _FileWatch(params.settle_s)
         self.pending: dict[str, float] = {}  # stems whose left image is there, not yet taken -> when first seen
         self.done: set[str] = set()  # stems taken or skipped (pruned as the session moves on)
@@ -205,8 +233,11 @@ class SessionFollower:
     # -- polling ------------------------------------------------------------------------------
 
     def poll(self) -> list[tuple[int, float]]:
-        """Take every frame complete now, in order; (index in the session, when found complete) each."""
+        """Take every frame complete now, in order; (index in the session, when its last file was completed,
+        on the ``time.monotonic`` clock) each. A file's completion is its change time (the rename into place,
+        or the last write of a recorder writing in place), so the time a frame waited for this poll counts."""
         now = time.monotonic()
+        wall_offset = time.time() - now  # file times are wall-clock: to the monotonic clock and back
         found = self._probe()
         if self.last_stem is None or now - self._last_scan >= self.params.rescan_s:  # nothing to probe from yet
             self._last_scan = now
@@ -219,44 +250,54 @@ class SessionFollower:
             for row in self.frames_csv.rows():
                 try:
                     self.times[row["frame"]] = float(row["timestamp"])
+                    self.row_read[row["frame"]] = now + wall_offset
                 except (KeyError, ValueError):
                     raise SessionError(self.frames_csv.path, f"line {self.frames_csv.line}: expected frame,timestamp "
                                        "(stem, seconds)") from None
         self.force_rows.extend(self.force_csv.rows())
-        taken: list[tuple[str, dict[str, Path]]] = []
+        taken: list[tuple[str, dict[str, Path], float]] = []
         for stem in sorted(self.pending, key=natural_key):
-            files, missing = self._complete(stem, now)
+            files, missing, completed = self._complete(stem, now)
             if missing is None:
-                taken.append((stem, files))
+                taken.append((stem, files, min(now, completed - wall_offset)))
             elif now - self.pending[stem] > self.params.frame_timeout_s:
                 warnings.warn(f"frame {stem} skipped: {missing} did not arrive complete within "
                               f"{self.params.frame_timeout_s:g} s (--frame-timeout)", SessionWarning, stacklevel=2)
                 self.skipped.append(stem)
+                self.times.pop(stem, None)
+                self.row_read.pop(stem, None)
             else:
                 break  # frames are taken in order: wait for this one
             del self.pending[stem]
             self.last_stem = stem
         return self._add(taken, now)
 
-    def _complete(self, stem: str, now: float) -> tuple[dict[str, Path], str | None]:
-        """The frame's files, and the first one missing or incomplete (None: all complete)."""
+    def _complete(self, stem: str, now: float) -> tuple[dict[str, Path], str | None, float]:
+        """The frame's files, the first one missing or incomplete (None: all complete), and when the last
+        of them was completed (``time.time()`` seconds; a frames.csv row counts when it was read)."""
         files = {}
+        last = -math.inf
         for layer in self.layers:
             path = self._file(layer, stem)
             if path is None:
                 folder, suffixes = LAYER_FOLDERS[layer]
-                return files, str(self.root / folder / f"{stem}{suffixes[0]}")
-            if not self.files.complete(path, now):
-                return files, str(path)
+                return files, str(self.root / folder / f"{stem}{suffixes[0]}"), last
+            completed = self.files.complete(path, now)
+            if completed is None:
+                return files, str(path), last
             files[layer] = path
-        if self.frames_csv is not None and stem not in self.times:
-            return files, f"{self.frames_csv.path} row of frame {stem}"
-        return files, None
+            last = max(last, completed)
+        if self.frames_csv is not None:
+            if stem not in self.times:
+                return files, f"{self.frames_csv.path} row of frame {stem}", last
+            last = max(last, self.row_read.get(stem, last))
+        return files, None, last
 
-    def _add(self, taken: list[tuple[str, dict[str, Path]]], now: float) -> list[tuple[int, float]]:
+    def _add(self, taken: list[tuple[str, dict[str, Path], float]], now: float) -> list[tuple[int, float]]:
         if not taken:
             return []
-        stems = [stem for stem, _ in taken]
+        stems = [stem for stem, _, _ in taken]
+        completed = [when for _, _, when in taken]
         if self.session is None:
             try:
                 with warnings.catch_warnings():
@@ -271,21 +312,24 @@ class SessionFollower:
                 return []
             for stem in stems:
                 self.times.pop(stem, None)
+                self.row_read.pop(stem, None)
             self.done.update(stems)
-            return [(i, now) for i in range(len(stems))]
+            return list(enumerate(completed))
         session = self.session
         first = len(session)
         by_layer: dict[str, dict[str, Path]] = {}
-        for stem, files in taken:
+        for stem, files, _ in taken:
             for layer, path in files.items():
                 by_layer.setdefault("depth" if layer == "disparity" else layer, {})[stem] = path
         if self.frames_csv is not None:
             times = [self.times.pop(stem) for stem in stems]
+            for stem in stems:
+                self.row_read.pop(stem, None)
         else:
             times = [(first + i) / session.fps for i in range(len(stems))]
         session.extend(stems, by_layer, times)
         self.done.update(stems)
-        return [(first + i, now) for i in range(len(stems))]
+        return [(first + i, when) for i, when in enumerate(completed)]
 
     def from_backlog(self, stem: str) -> bool:
         """Whether a frame taken was there when following started (``from_start``); asked once per frame."""

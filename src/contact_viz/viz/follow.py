@@ -13,11 +13,13 @@ complete -> its data logged, ms) is a series of its own (``series/lag_ms``).
 from __future__ import annotations
 
 import math
+import threading
 import time
 import warnings
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +81,11 @@ def follow_session(
     Runs until ``params.idle_timeout_s`` passes without a new frame, ``stop()`` is true, or a
     KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP): what was logged is flushed either way.
     ``progress(frames)`` is called after each frame logged whole.
+
+    Three stages overlap: this thread polls the folders and decides how each new frame is shown, two
+    worker threads read it (its patch, as `extract` computes it, beside its images), and a logging
+    thread logs the frames in order (:class:`_FrameLog`). One frame is read while the one before it is
+    logged; a frame that completes while a newer whole frame already waits is shown in the series only.
     """
     if options.hand_eye is not None:
         raise ValueError("--hand-eye: not available with --follow (kinematics.csv is read whole)")
@@ -90,69 +97,174 @@ def follow_session(
     if waited is not None:  # no session appeared: stopped as if idle (or by the caller) before any frame
         return _no_frame(started, waited)
     follower = SessionFollower(root, params, **(open_kwargs or {}))
-    logger: FrameLogger | None = None
-    latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
-    series_only = unfiltered = replayed = 0
+    readers = ThreadPoolExecutor(max_workers=2, thread_name_prefix="contact-viz-follow-read")
+    log: _FrameLog | None = None
+    waiting: deque[tuple[int, float, bool]] = deque()  # complete, not handed on: (index, completed, replay)
     interrupted, stop_signal, why = False, 0, ""
     try:
         while True:
             arrived = follower.poll()
             now = time.monotonic()
+            session = follower.session
+            if arrived:
+                last_new = now
+                if log is None:
+                    logger = FrameLogger(session, rec, replace(options, start=0, end=None, stride=1), model)
+                    log = _FrameLog(logger, rec, progress)
+                waiting.extend((index, completed, follower.from_backlog(session.stems[index]))
+                               for index, completed in arrived)
+            if log is not None:
+                log.raise_error()
+                _hand_on(waiting, log, readers, session, options)
+                rows = follower.take_force_rows()
+                if rows:
+                    log.put(_Job("force", rows=rows))
+                follower.prune()
             if not arrived:
                 if params.idle_timeout_s is not None and now - last_new > params.idle_timeout_s:
                     why = "idle"
                     break
                 if stop is not None and stop():
                     break
-                _log_force(rec, follower, logger)
                 time.sleep(params.poll_s)
-                continue
-            last_new = now
-            session = follower.session
-            if logger is None:
-                logger = FrameLogger(session, rec, replace(options, start=0, end=None, stride=1), model)
-            for index, _ in arrived[:-1]:
-                if follower.from_backlog(session.stems[index]):  # --from-start: there at the start, shown whole
-                    replayed += 1
-                    logger.log(_result(session, index, options), logger.reader.load(index))
-                    continue
-                series_only += 1  # behind: shown in the series only
-                result = _result(session, index, options) if session.depth_source != "sgbm" else None
-                if result is None:
-                    unfiltered += 1
-                    result = FrameResult(BadFrame(index, session.stems[index], float(session.timestamps_s[index]),
-                                                  None), None)
-                logger.log_series_only(result)
-            index, complete_at = arrived[-1]
-            logger.log(_result(session, index, options), logger.reader.load(index))
-            if follower.from_backlog(session.stems[index]):  # its files completed before the run: no latency
-                replayed += 1
-            else:
-                lag_ms = (time.monotonic() - complete_at) * 1000
-                latencies.append(lag_ms)
-                rec.log(ENTITY_SERIES_LAG, rr.Scalars(lag_ms))
-            _log_force(rec, follower, logger)
-            if logger.done % options.flush_every == 0:
-                flush(rec)
-            follower.prune()
-            if progress is not None:
-                progress(logger.done)
+        if log is not None:  # the frames taken so far are logged before the end
+            _hand_on(waiting, log, readers, session, options, everything=True)
+            log.close(wait=True)
+            log.raise_error()
     except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (contact_viz.console.Stopped)
         interrupted, stop_signal, why = True, getattr(exc, "signum", 2), "interrupted"
     finally:
         summary = None
-        if logger is not None:
-            summary = logger.finish(range(follower.session and len(follower.session) or 0), started=started,
-                                    interrupted=interrupted, stop_signal=stop_signal)
+        if log is not None:
+            log.close(wait=False)  # a stop: the frame being logged is finished, those queued are dropped
+            readers.shutdown(wait=True, cancel_futures=True)
+            done = log.logger.last_index + 1 if log.logger.last_index is not None else 0
+            summary = log.logger.finish(range(done), started=started, interrupted=interrupted,
+                                        stop_signal=stop_signal)
+        else:
+            readers.shutdown(wait=True, cancel_futures=True)
         flush(rec)
+    if log is not None:
+        log.raise_error()
     if summary is None:
         summary = _empty_run(started, interrupted, stop_signal)
-    lat = np.asarray(latencies, dtype=np.float64)
+    counts = log.counts if log is not None else {}
+    lat = np.asarray(log.latencies if log is not None else [], dtype=np.float64)
     figures = (float(np.median(lat)), float(np.percentile(lat, 95)), float(lat.max())) if lat.size else (
         math.nan, math.nan, math.nan)
-    return FollowSummary(run=summary, frames_series_only=series_only, frames_unfiltered=unfiltered,
-                         frames_replayed=replayed,
+    return FollowSummary(run=summary, frames_series_only=counts.get("series", 0),
+                         frames_unfiltered=counts.get("unfiltered", 0), frames_replayed=counts.get("replayed", 0),
                          frames_timed_out=len(follower.skipped), latency_ms=figures, stop=why)
+
+
+@dataclass
+class _Job:
+    """What the logging thread logs next: a frame (shown whole or in the series only) or force rows."""
+
+    kind: str  # "whole", "series" or "force"
+    index: int = -1  # the frame's index in the session
+    completed: float = math.nan  # when its last file was completed (time.monotonic), s
+    replay: bool = False  # --from-start: there at the start (shown whole, not in the latency)
+    result: Future | None = None  # its FrameResult (None: SGBM depth not matched for a series-only frame)
+    images: Future | None = None  # its ShownImages (whole frames)
+    rows: list = field(default_factory=list)  # force.csv rows ("force")
+
+
+def _hand_on(waiting: deque, log: _FrameLog, readers: ThreadPoolExecutor, session, options: DebuggerOptions,
+             everything: bool = False) -> None:
+    """Start reading the frames waiting, in order, while no whole frame is queued for logging (or
+    ``everything``): a frame there at the start, or the newest, is shown whole; an older one only in
+    the series (the follower is behind), its patch read unless the depth comes from SGBM."""
+    while waiting and (everything or not log.whole_queued()):
+        index, completed, replay = waiting.popleft()
+        if replay or not waiting:
+            log.put(_Job("whole", index, completed, replay, readers.submit(_result, session, index, options),
+                         readers.submit(log.logger.reader.load, index)))
+        else:
+            log.put(_Job("series", index, completed, result=None if session.depth_source == "sgbm" else
+                         readers.submit(_result, session, index, options)))
+
+
+class _FrameLog(threading.Thread):
+    """The logging thread: logs the jobs in order (a frame's data through its :class:`FrameLogger`, its
+    lag, force rows at their frames), flushes every ``flush_every`` frames and keeps the counts."""
+
+    def __init__(self, logger: FrameLogger, rec, progress: Callable[[int], None] | None) -> None:
+        super().__init__(name="contact-viz-follow-log", daemon=True)
+        self.logger, self.rec, self.progress = logger, rec, progress
+        self.jobs: deque[_Job] = deque()
+        self.changed = threading.Condition()
+        self.closing = self.dropping = False
+        self.error: BaseException | None = None
+        self.latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
+        self.counts = {"series": 0, "unfiltered": 0, "replayed": 0}
+        self.held_force: list[dict[str, str]] = []  # rows of frames not there yet
+        self.start()
+
+    def put(self, job: _Job) -> None:
+        with self.changed:
+            self.jobs.append(job)
+            self.changed.notify()
+
+    def whole_queued(self) -> bool:
+        """Whether a frame to show whole waits in the queue (not the one being logged)."""
+        with self.changed:
+            return any(job.kind == "whole" for job in self.jobs)
+
+    def raise_error(self) -> None:
+        """Raise, in the caller's thread, what stopped the logging thread (a sink error, a bug)."""
+        if self.error is not None:
+            raise self.error
+
+    def close(self, wait: bool) -> None:
+        """Stop after the jobs queued (``wait``) or after the job being logged, and join."""
+        with self.changed:
+            self.closing = True
+            self.dropping = self.dropping or not wait
+            self.changed.notify()
+        self.join()
+
+    def run(self) -> None:
+        while True:
+            with self.changed:
+                while not self.jobs and not self.closing:
+                    self.changed.wait()
+                if self.dropping or not self.jobs:
+                    return
+                job = self.jobs.popleft()
+            try:
+                self._log(job)
+            except BaseException as exc:  # noqa: BLE001 - handed to the polling thread (raise_error)
+                self.error = exc
+                return
+
+    def _log(self, job: _Job) -> None:
+        logger, session = self.logger, self.logger.session
+        if job.kind == "force":
+            self.held_force = _log_force(self.rec, session, self.held_force + job.rows)
+            return
+        if job.kind == "series":
+            self.counts["series"] += 1
+            result = job.result.result() if job.result is not None else None
+            if result is None:
+                self.counts["unfiltered"] += 1
+                result = FrameResult(BadFrame(job.index, session.stems[job.index],
+                                              float(session.timestamps_s[job.index]), None), None)
+            logger.log_series_only(result)
+        else:
+            logger.log(job.result.result(), job.images.result())
+            if job.replay:
+                self.counts["replayed"] += 1
+            else:
+                lag_ms = (time.monotonic() - job.completed) * 1000
+                self.latencies.append(lag_ms)
+                self.rec.log(ENTITY_SERIES_LAG, rr.Scalars(lag_ms))
+            if logger.done % logger.options.flush_every == 0:
+                flush(self.rec)
+            if self.progress is not None:
+                self.progress(logger.done)
+        if self.held_force:
+            self.held_force = _log_force(self.rec, session, self.held_force)
 
 
 def _wait_for_session(root: Path, params: FollowParams, stop: Callable[[], bool] | None,
@@ -191,12 +303,11 @@ def _result(session, index: int, options: DebuggerOptions) -> FrameResult:
     return FrameResult(frame, *frame_patches(frame, options.patch_params, session.object_ids))
 
 
-def _log_force(rec, follower: SessionFollower, logger: FrameLogger | None) -> None:
-    """The force rows read so far, at their frame (``frame`` column) or nearest frame time (``timestamp``)."""
-    session = follower.session
-    if logger is None or session is None or not len(session):
-        return
-    rows = follower.take_force_rows()
+def _log_force(rec, session, rows: list[dict[str, str]]) -> list[dict[str, str]]:
+    """Log force rows at their frame (``frame`` column) or nearest frame time (``timestamp``); returns the
+    rows whose frame is not there yet (the last 10 000: rows of frames that never come are not kept forever)."""
+    if not len(session):
+        return rows[-10_000:]
     held = []
     times = session.timestamps_s
     recent = enumerate(session.stems[-256:], start=max(len(session) - 256, 0))
@@ -219,4 +330,4 @@ def _log_force(rec, follower: SessionFollower, logger: FrameLogger | None) -> No
             continue
         rerun_log.set_frame_time(rec, index, float(times[index]))
         rerun_log.log_force_sample(rec, force)
-    follower.force_rows[:0] = held[-10_000:]  # rows of frames that never came are not kept forever
+    return held[-10_000:]
