@@ -114,11 +114,11 @@ class Writer(threading.Thread):
             self.append("force.csv", self.force[j + 1])
 
 
-def follow(dst: Path, out: Path, params: FollowParams, **kwargs):
+def follow(dst: Path, out: Path, params: FollowParams, model=None, **kwargs):
     opened = open_recording(save=out)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        summary = follow_session(dst, opened.rec, DebuggerOptions(**kwargs), params=params)
+        summary = follow_session(dst, opened.rec, DebuggerOptions(**kwargs), model=model, params=params)
     opened.close()
     return summary, Recording(out), [str(w.message) for w in caught]
 
@@ -289,3 +289,57 @@ def test_no_session_within_the_idle_timeout_stops_cleanly(tmp_path):
     assert "latency (files complete -> logged): none (no frame arrived after the start); frames shown only in the " \
            "series: 0 (0 without a distance); timed out: 0" in lines and "nan" not in result.output
     assert not (tmp_path / "never").exists()  # nothing made where the session was to be
+
+
+def test_a_frame_is_complete_when_its_last_file_was_renamed_into_place_not_when_polled(finished, tmp_path):
+    """The latency starts at the frame's last file (its change time: the rename), however late the poll."""
+    dst = tmp_path / "live"
+    writer = Writer(finished, dst, frames=0)
+    follower = SessionFollower(dst, FollowParams(from_start=True))
+    writer.frames, writer.fps = 2, 1e6
+    writer.run()
+    written = time.monotonic()
+    time.sleep(0.3)  # the follower was busy
+    arrived = follower.poll()
+    polled = time.monotonic()
+    assert [index for index, _ in arrived] == [0, 1]
+    for _, completed in arrived:
+        assert written - 0.05 <= completed <= written + 0.01 < polled - 0.25, (written, completed, polled)
+
+
+def test_falling_behind_shows_the_newest_whole_and_the_filter_sees_every_frame(finished, extracted, tmp_path):
+    """Frames written in a burst (far faster than they are logged): the older ones are shown in the series
+    only, the newest whole; every frame has its distance, and the causal posterior is the model's on all
+    of them, in order."""
+    from contact_viz.model.hmm import LosoEnsemble
+    from contact_viz.model.model_file import ContactModel
+    from contact_viz.params import LabelParams, PatchParams
+
+    rng = np.random.default_rng(7)
+    signals, labels = [], []
+    for _ in range(3):
+        y = (np.sin(np.arange(300) / 15.0) > 0.3).astype(np.int64)
+        signals.append(rng.normal(np.where(y == 1, 2.6, 1.6), np.where(y == 1, 0.3, 0.3)))
+        labels.append(y)
+    ensemble = LosoEnsemble().fit(signals, labels)
+    model = ContactModel(ensemble=ensemble, patch_params=PatchParams(), label_params=LabelParams(),
+                         training_sessions=())
+    dst = tmp_path / "live"
+    recorder = threading.Timer(0.5, lambda: Writer(finished, dst, fps=1e5).run())  # every frame at once
+    recorder.start()
+    summary, rec, messages = follow(dst, tmp_path / "f.rrd", FollowParams(idle_timeout_s=2.0), model=model)
+    recorder.join()
+    assert messages == [] and summary.frames_timed_out == 0
+    assert summary.frames_series_only >= 1 and summary.run.frames + summary.frames_series_only == N
+    got = distances(rec)
+    assert sorted(got) == list(range(N))
+    for k in range(N):
+        assert got[k] == pytest.approx(float(extracted[k]["distance_m"]) * 1000, abs=1e-9)
+    want = ensemble.predict_proba(np.array([float(extracted[k]["signal"]) for k in range(N)]))
+    posterior = rec.scalars(rerun_log.ENTITY_SERIES_POSTERIOR)
+    assert sorted(posterior) == list(range(N))
+    np.testing.assert_allclose([posterior[k] for k in range(N)], want, rtol=0, atol=1e-12)
+    assert len(set(np.round(want, 3))) > 1  # the posterior moves
+    whole = rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer")
+    assert len(whole) == summary.run.frames and (N - 1) in whole  # the newest is shown whole
+    assert sorted(rec.frames(rerun_log.ENTITY_SERIES_LAG, "Scalars:scalars")) == whole

@@ -139,12 +139,15 @@ class CsvTail:
         self.offset = 0
         self.header: list[str] | None = None
         self.line = 0
+        self.changed = math.nan  # the file's modification time at the last read (time.time() s): when the
+        # last of the lines read was appended, at the latest
 
     def rows(self) -> list[dict[str, str]]:
         try:
             with open(self.path, "rb") as handle:
                 handle.seek(self.offset)
                 data = handle.read()
+                self.changed = os.fstat(handle.fileno()).st_mtime_ns / 1e9
         except OSError:
             return []
         end = data.rfind(b"\n")
@@ -166,12 +169,14 @@ class CsvTail:
 class SessionFollower:
     """The complete frames of a session being recorded, appended to one growing :class:`Session`.
 
-    ``open_kwargs`` go to :func:`contact_viz.io.session.open_session`. :meth:`poll` returns the
+    ``new``: the session was made after following began, so every frame in it is new (taken, and not
+    replayed with ``from_start``). ``open_kwargs`` go to :func:`contact_viz.io.session.open_session`. :meth:`poll` returns the
     indices added since the last call, each with the time (``time.monotonic``) it was found complete;
     :attr:`session` is None until the first frame is.
     """
 
-    def __init__(self, root: str | Path, params: FollowParams = FollowParams(), **open_kwargs) -> None:
+    def __init__(self, root: str | Path, params: FollowParams = FollowParams(), *, new: bool = False,
+                 **open_kwargs) -> None:
         self.root = Path(root).expanduser()
         if not (self.root / "left").is_dir():
             raise SessionError(self.root / "left", "missing: expected the left/ folder of a session being "
@@ -186,7 +191,7 @@ class SessionFollower:
         self.frames_csv = CsvTail(self.root / "frames.csv") if (self.root / "frames.csv").is_file() else None
         self.force_csv = CsvTail(self.root / "force.csv")
         self.times: dict[str, float] = {}  # frames.csv rows not yet used: stem -> s
-        self.row_read: dict[str, float] = {}  # when those rows were read (time.time() s)
+        self.row_read: dict[str, float] = {}  # when those rows were appended, at the latest (time.time() s)
         self.files = _FileWatch(params.settle_s)
         self.pending: dict[str, float] = {}  # stems whose left image is there, not yet taken -> when first seen
         self.done: set[str] = set()  # stems taken or skipped (pruned as the session moves on)
@@ -194,7 +199,7 @@ class SessionFollower:
         self.skipped: list[str] = []  # stems skipped (their files never completed)
         self._last_scan = -math.inf
         self.started = time.monotonic()
-        existing = sorted(self._list(), key=natural_key)
+        existing = [] if new else sorted(self._list(), key=natural_key)
         self.backlog: set[str] = set(existing) if params.from_start else set()  # there at the start, not taken yet
         if not params.from_start and existing:  # start after the frames already there
             self.last_stem = existing[-1]
@@ -250,7 +255,7 @@ class SessionFollower:
             for row in self.frames_csv.rows():
                 try:
                     self.times[row["frame"]] = float(row["timestamp"])
-                    self.row_read[row["frame"]] = now + wall_offset
+                    self.row_read[row["frame"]] = min(self.frames_csv.changed, now + wall_offset)
                 except (KeyError, ValueError):
                     raise SessionError(self.frames_csv.path, f"line {self.frames_csv.line}: expected frame,timestamp "
                                        "(stem, seconds)") from None
@@ -274,7 +279,8 @@ class SessionFollower:
 
     def _complete(self, stem: str, now: float) -> tuple[dict[str, Path], str | None, float]:
         """The frame's files, the first one missing or incomplete (None: all complete), and when the last
-        of them was completed (``time.time()`` seconds; a frames.csv row counts when it was read)."""
+        of them was completed (``time.time()`` seconds; a frames.csv row counts at frames.csv's modification
+        time when it was read)."""
         files = {}
         last = -math.inf
         for layer in self.layers:

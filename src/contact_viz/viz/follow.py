@@ -94,9 +94,10 @@ def follow_session(
         waited = _wait_for_session(Path(root), params, stop, started)
     except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP before the session appeared
         return _no_frame(started, "interrupted", getattr(exc, "signum", 2))
-    if waited is not None:  # no session appeared: stopped as if idle (or by the caller) before any frame
+    if waited not in ("there", "made"):  # no session appeared: stopped as if idle (or by the caller)
         return _no_frame(started, waited)
-    follower = SessionFollower(root, params, **(open_kwargs or {}))
+    # a session made after the start: its frames are all new (none to start after, none to replay)
+    follower = SessionFollower(root, params, new=waited == "made", **(open_kwargs or {}))
     readers = ThreadPoolExecutor(max_workers=2, thread_name_prefix="contact-viz-follow-read")
     log: _FrameLog | None = None
     waiting: deque[tuple[int, float, bool]] = deque()  # complete, not handed on: (index, completed, replay)
@@ -268,16 +269,19 @@ class _FrameLog(threading.Thread):
 
 
 def _wait_for_session(root: Path, params: FollowParams, stop: Callable[[], bool] | None,
-                      started: float) -> str | None:
-    """Wait for the recorder to make the session (its left/ folder): None once it has, else the stop
-    reason of a run that took no frame: "idle" (--idle-timeout passed) or "" (``stop()``)."""
+                      started: float) -> str:
+    """Wait for the recorder to make the session (its left/ folder): "there" (it was there at the start) or
+    "made" (made since), else the stop reason of a run that took no frame: "idle" (--idle-timeout passed)
+    or "" (``stop()``)."""
+    made = "there"
     while not (root / "left").is_dir():
+        made = "made"
         if params.idle_timeout_s is not None and time.monotonic() - started > params.idle_timeout_s:
             return "idle"
         if stop is not None and stop():
             return ""
         time.sleep(max(params.poll_s, 0.05))
-    return None
+    return made
 
 
 def _empty_run(started: float, interrupted: bool, stop_signal: int) -> RunSummary:
