@@ -30,7 +30,7 @@ from contact_viz.viz import rerun_log
 from contact_viz.viz.follow import follow_session
 from contact_viz.viz.options import DebuggerOptions
 from contact_viz.viz.sinks import open_recording
-from test_viewer import Recording
+from test_viewer import Recording, tiny_model
 
 N = 16
 
@@ -311,19 +311,8 @@ def test_falling_behind_shows_the_newest_whole_and_the_filter_sees_every_frame(f
     """Frames written in a burst (far faster than they are logged): the older ones are shown in the series
     only, the newest whole; every frame has its distance, and the causal posterior is the model's on all
     of them, in order."""
-    from contact_viz.model.hmm import LosoEnsemble
-    from contact_viz.model.model_file import ContactModel
-    from contact_viz.params import LabelParams, PatchParams
-
-    rng = np.random.default_rng(7)
-    signals, labels = [], []
-    for _ in range(3):
-        y = (np.sin(np.arange(300) / 15.0) > 0.3).astype(np.int64)
-        signals.append(rng.normal(np.where(y == 1, 2.6, 1.6), np.where(y == 1, 0.3, 0.3)))
-        labels.append(y)
-    ensemble = LosoEnsemble().fit(signals, labels)
-    model = ContactModel(ensemble=ensemble, patch_params=PatchParams(), label_params=LabelParams(),
-                         training_sessions=())
+    model = tiny_model(contact=(2.6, 0.3), free=(1.6, 0.3), seed=7)
+    ensemble = model.ensemble
     dst = tmp_path / "live"
     recorder = threading.Timer(0.5, lambda: Writer(finished, dst, fps=1e5).run())  # every frame at once
     recorder.start()
@@ -343,3 +332,30 @@ def test_falling_behind_shows_the_newest_whole_and_the_filter_sees_every_frame(f
     whole = rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer")
     assert len(whole) == summary.run.frames and (N - 1) in whole  # the newest is shown whole
     assert sorted(rec.frames(rerun_log.ENTITY_SERIES_LAG, "Scalars:scalars")) == whole
+
+
+def test_stems_out_of_sequence_are_found_by_listing_once_probing_stalls(finished, tmp_path):
+    """Probing finds the next three numbers; a larger gap, a stem that grows a digit or one in another
+    naming is found by listing left/ once probing has found nothing for ``rescan_s``."""
+    dst = tmp_path / "live"
+    writer = Writer(finished, dst, frames=0)
+    writer.frames, writer.fps = 3, 1e6
+    writer.run()  # 000000 .. 000002, there at the start
+    follower = SessionFollower(dst, FollowParams(from_start=True, rescan_s=0.2, settle_s=0.0))
+
+    def put(k: int, stem: str) -> None:
+        for folder in writer.folders:
+            (source,) = (finished / folder).glob(f"{k:06d}.*")
+            writer.put(source, dst / folder / f"{stem}{source.suffix}")
+        writer.append("frames.csv", f"{stem},{10 + k:.1f}")
+
+    assert [index for index, _ in follower.poll()] == [0, 1, 2]
+    put(3, "000009")  # six numbers ahead: not probed
+    put(4, "1000000")  # another width
+    assert follower.poll() == []
+    time.sleep(0.25)
+    arrived = follower.poll()
+    assert [follower.session.stems[index] for index, _ in arrived] == ["000009", "1000000"]
+    put(5, "000004")  # before the last frame taken: never taken
+    time.sleep(0.25)
+    assert follower.poll() == [] and follower.poll() == []

@@ -314,17 +314,22 @@ def test_known_series_blueprint_and_no_model_hint(default_run):
     assert "TextLog" in classes
 
 
-def test_posterior_with_a_model_equals_predict_proba(session_dir, tmp_path):
-    # a tiny ensemble fitted on random sequences whose contact frames have a large signal
-    rng = np.random.default_rng(5)
+def tiny_model(contact: tuple[float, float], free: tuple[float, float], seed: int = 5) -> ContactModel:
+    """A tiny ensemble fitted on three random sequences whose contact frames have the signal ``contact``
+    (mean, sd) and the others ``free``, in a model with the default patch parameters."""
+    rng = np.random.default_rng(seed)
     signals, labels = [], []
     for _ in range(3):
         y = (np.sin(np.arange(300) / 15.0) > 0.3).astype(np.int64)
-        signals.append(rng.normal(np.where(y == 1, 3.0, 2.2), np.where(y == 1, 0.3, 0.1)))
+        signals.append(rng.normal(np.where(y == 1, contact[0], free[0]), np.where(y == 1, contact[1], free[1])))
         labels.append(y)
-    ensemble = LosoEnsemble().fit(signals, labels)
-    model = ContactModel(ensemble=ensemble, patch_params=PatchParams(), label_params=LabelParams(),
-                         training_sessions=())
+    return ContactModel(ensemble=LosoEnsemble().fit(signals, labels), patch_params=PatchParams(),
+                        label_params=LabelParams(), training_sessions=())
+
+
+def test_posterior_with_a_model_equals_predict_proba(session_dir, tmp_path):
+    model = tiny_model(contact=(3.0, 0.3), free=(2.2, 0.1))
+    ensemble = model.ensemble
     options = DebuggerOptions(stride=2, points=False)
     session, summary, rec = run(session_dir, tmp_path / "model.rrd", options, model=model)
     indices = list(range(0, N_FRAMES, 2))

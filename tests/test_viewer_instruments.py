@@ -15,13 +15,12 @@ from PIL import Image
 
 rr = pytest.importorskip("rerun")
 
-from test_viewer import CY, H, N_FRAMES, TISSUE_M, W, Recording, image_buffer, write_session  # noqa: E402
+from test_viewer import (  # noqa: E402
+    CY, H, N_FRAMES, TISSUE_M, W, Recording, image_buffer, tiny_model, write_session)
 
 from contact_viz.geometry.patch import LAYER_INTERIOR, LAYER_TOOL_EDGE  # noqa: E402
 from contact_viz.io.session import open_session  # noqa: E402
-from contact_viz.model.hmm import LosoEnsemble  # noqa: E402
-from contact_viz.model.model_file import ContactModel  # noqa: E402
-from contact_viz.params import LabelParams, PatchParams  # noqa: E402
+from contact_viz.params import PatchParams  # noqa: E402
 from contact_viz.pipeline.extract import frame_patches  # noqa: E402
 from contact_viz.viz import rerun_log  # noqa: E402
 from contact_viz.viz.debugger import DebuggerOptions, run_debugger  # noqa: E402
@@ -231,15 +230,8 @@ def test_the_nearest_instrument_per_frame_and_in_the_summary(two_run):
 
 
 def test_with_a_model_each_instrument_has_its_posterior_and_the_scene_the_max(two_dir, tmp_path):
-    rng = np.random.default_rng(5)
-    signals, labels = [], []
-    for _ in range(3):
-        y = (np.sin(np.arange(300) / 15.0) > 0.3).astype(np.int64)
-        signals.append(rng.normal(np.where(y == 1, 2.6, 2.2), np.where(y == 1, 0.2, 0.1)))
-        labels.append(y)
-    ensemble = LosoEnsemble().fit(signals, labels)
-    model = ContactModel(ensemble=ensemble, patch_params=PatchParams(), label_params=LabelParams(),
-                         training_sessions=())
+    model = tiny_model(contact=(2.6, 0.2), free=(2.2, 0.1))
+    ensemble = model.ensemble
     session, summary, rec = view(two_dir, tmp_path / "model.rrd", model=model, points=False, images="jpeg")
     want = expected(session)
     columns = {k: np.array([want[i][k].signal if k in want[i] else np.nan for i in range(N_FRAMES)]) for k in (1, 2)}

@@ -14,8 +14,9 @@ file) are. Frames are taken in the session's order (numeric stems); a frame whos
 not complete ``frame_timeout_s`` after its left image is skipped, with one warning naming the file.
 
 Names are found by probing the next stems of a numbered sequence (``000124`` after ``000123``)
-at every poll and by listing the folders every ``rescan_s``: an hour-long session is not listed
-thirty times a second.
+at every poll, and by listing left/ when there is nothing to probe from or probing has found nothing
+for ``rescan_s`` (a stem out of sequence, names that are not numbered); a listing sets aside the names
+up to the last frame's by a plain comparison, so an hour-long session is not parsed at every listing.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ class FollowParams:
     frame_timeout_s: float = checked(5.0, gt=0)  # after its left image, how long a frame's other files may take, s
     idle_timeout_s: float | None = checked(None, gt=0)  # stop after this long without a new frame, s; None: never
     from_start: bool = False  # take the frames already there first (else start after the last of them)
-    rescan_s: float = checked(0.5, gt=0)  # list the folders at least this often (stems out of sequence), s
+    rescan_s: float = checked(0.5, gt=0)  # list left/ after this long without a frame found by probing, s
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -197,24 +198,38 @@ class SessionFollower:
         self.done: set[str] = set()  # stems taken or skipped (pruned as the session moves on)
         self.last_stem: str | None = None
         self.skipped: list[str] = []  # stems skipped (their files never completed)
+        self._last_left = ""  # the left image file name of the last frame taken
+        self._suffix: dict[str, str] = {}  # layer -> the suffix of its last file found
+        self._ready: dict[str, dict[str, tuple[Path, float]]] = {}  # pending stem -> its files found complete
         self._last_scan = -math.inf
-        self.started = time.monotonic()
+        self.started = self._last_probed = time.monotonic()
         existing = [] if new else sorted(self._list(), key=natural_key)
         self.backlog: set[str] = set(existing) if params.from_start else set()  # there at the start, not taken yet
-        if not params.from_start and existing:  # start after the frames already there
+        if params.from_start:  # to be taken first
+            self.pending.update(dict.fromkeys(existing, self.started))
+        elif existing:  # start after the frames already there
             self.last_stem = existing[-1]
+            path = self._file("left", self.last_stem)
+            self._last_left = path.name if path is not None else ""
             self.done.update(existing)
         self.force_rows: list[dict[str, str]] = []  # force.csv rows not yet logged
 
     # -- names ------------------------------------------------------------------------------
 
     def _list(self) -> list[str]:
+        """The stems of the left images, but those of names as long as the last frame's and not after it
+        (for stems of one width, the order of the names; a plain comparison, so that an hour-long session's
+        names are not parsed at every listing)."""
         folder, suffixes = LAYER_FOLDERS["left"]
         try:
             names = os.listdir(self.root / folder)
         except OSError:
             return []
-        return [n.rsplit(".", 1)[0] for n in names if _visible(n) and n.lower().endswith(suffixes)]
+        last = self._last_left
+        if last:
+            width = len(last)
+            names = [name for name in names if len(name) != width or name > last]
+        return [name.rsplit(".", 1)[0] for name in names if _visible(name) and name.lower().endswith(suffixes)]
 
     def _probe(self) -> list[str]:
         """The next stems of a numbered sequence that exist (no listing)."""
@@ -228,11 +243,14 @@ class SessionFollower:
         return out
 
     def _file(self, layer: str, stem: str) -> Path | None:
+        """Frame ``stem``'s file of ``layer``, or None; the suffix the layer's last file had is tried first."""
         folder, suffixes = LAYER_FOLDERS[layer]
-        for suffix in suffixes:
-            path = self.root / folder / f"{stem}{suffix}"
-            if path.exists():
-                return path
+        last = self._suffix.get(layer)
+        for suffix in ((last,) + suffixes if last else suffixes):
+            path = f"{self.root}/{folder}/{stem}{suffix}"
+            if os.path.exists(path):
+                self._suffix[layer] = suffix
+                return Path(path)
         return None
 
     # -- polling ------------------------------------------------------------------------------
@@ -244,7 +262,12 @@ class SessionFollower:
         now = time.monotonic()
         wall_offset = time.time() - now  # file times are wall-clock: to the monotonic clock and back
         found = self._probe()
-        if self.last_stem is None or now - self._last_scan >= self.params.rescan_s:  # nothing to probe from yet
+        if found:
+            self._last_probed = now
+        # left/ is listed when there is no stem to probe from, or when probing has found nothing for rescan_s
+        # (a stem out of sequence, names that are not numbered): not while a numbered sequence flows
+        rescan = self.params.rescan_s
+        if self.last_stem is None or (now - self._last_scan >= rescan and now - self._last_probed >= rescan):
             self._last_scan = now
             found += self._list()
         for stem in found:
@@ -265,12 +288,14 @@ class SessionFollower:
             files, missing, completed = self._complete(stem, now)
             if missing is None:
                 taken.append((stem, files, min(now, completed - wall_offset)))
+                self._last_left = files["left"].name
             elif now - self.pending[stem] > self.params.frame_timeout_s:
                 warnings.warn(f"frame {stem} skipped: {missing} did not arrive complete within "
                               f"{self.params.frame_timeout_s:g} s (--frame-timeout)", SessionWarning, stacklevel=2)
                 self.skipped.append(stem)
                 self.times.pop(stem, None)
                 self.row_read.pop(stem, None)
+                self._ready.pop(stem, None)
             else:
                 break  # frames are taken in order: wait for this one
             del self.pending[stem]
@@ -281,23 +306,26 @@ class SessionFollower:
         """The frame's files, the first one missing or incomplete (None: all complete), and when the last
         of them was completed (``time.time()`` seconds; a frames.csv row counts at frames.csv's modification
         time when it was read)."""
-        files = {}
-        last = -math.inf
+        files = self._ready.setdefault(stem, {})  # layer -> (path, completed): not looked at again
+        last = max((completed for _, completed in files.values()), default=-math.inf)
         for layer in self.layers:
+            if layer in files:
+                continue
             path = self._file(layer, stem)
             if path is None:
                 folder, suffixes = LAYER_FOLDERS[layer]
-                return files, str(self.root / folder / f"{stem}{suffixes[0]}"), last
+                return {}, str(self.root / folder / f"{stem}{suffixes[0]}"), last
             completed = self.files.complete(path, now)
             if completed is None:
-                return files, str(path), last
-            files[layer] = path
+                return {}, str(path), last
+            files[layer] = (path, completed)
             last = max(last, completed)
         if self.frames_csv is not None:
             if stem not in self.times:
-                return files, f"{self.frames_csv.path} row of frame {stem}", last
+                return {}, f"{self.frames_csv.path} row of frame {stem}", last
             last = max(last, self.row_read.get(stem, last))
-        return files, None, last
+        del self._ready[stem]
+        return {layer: path for layer, (path, _) in files.items()}, None, last
 
     def _add(self, taken: list[tuple[str, dict[str, Path], float]], now: float) -> list[tuple[int, float]]:
         if not taken:

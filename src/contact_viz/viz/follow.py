@@ -19,7 +19,7 @@ import warnings
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +101,7 @@ def follow_session(
     readers = ThreadPoolExecutor(max_workers=2, thread_name_prefix="contact-viz-follow-read")
     log: _FrameLog | None = None
     waiting: deque[tuple[int, float, bool]] = deque()  # complete, not handed on: (index, completed, replay)
+    held_force: list[dict[str, str]] = []  # force.csv rows of frames not there yet
     interrupted, stop_signal, why = False, 0, ""
     try:
         while True:
@@ -118,8 +119,8 @@ def follow_session(
                 log.raise_error()
                 _hand_on(waiting, log, readers, session, options)
                 rows = follower.take_force_rows()
-                if rows:
-                    log.put(_Job("force", rows=rows))
+                if rows or (held_force and arrived):  # at their frames (this thread's time on the timelines)
+                    held_force = _log_force(rec, session, held_force + rows)
                 follower.prune()
             if not arrived:
                 if params.idle_timeout_s is not None and now - last_new > params.idle_timeout_s:
@@ -160,15 +161,14 @@ def follow_session(
 
 @dataclass
 class _Job:
-    """What the logging thread logs next: a frame (shown whole or in the series only) or force rows."""
+    """What the logging thread logs next: a frame, shown whole or in the series only."""
 
-    kind: str  # "whole", "series" or "force"
+    kind: str  # "whole" or "series"
     index: int = -1  # the frame's index in the session
     completed: float = math.nan  # when its last file was completed (time.monotonic), s
     replay: bool = False  # --from-start: there at the start (shown whole, not in the latency)
     result: Future | None = None  # its FrameResult (None: SGBM depth not matched for a series-only frame)
     images: Future | None = None  # its ShownImages (whole frames)
-    rows: list = field(default_factory=list)  # force.csv rows ("force")
 
 
 def _hand_on(waiting: deque, log: _FrameLog, readers: ThreadPoolExecutor, session, options: DebuggerOptions,
@@ -187,8 +187,8 @@ def _hand_on(waiting: deque, log: _FrameLog, readers: ThreadPoolExecutor, sessio
 
 
 class _FrameLog(threading.Thread):
-    """The logging thread: logs the jobs in order (a frame's data through its :class:`FrameLogger`, its
-    lag, force rows at their frames), flushes every ``flush_every`` frames and keeps the counts."""
+    """The logging thread: logs the jobs in order (a frame's data through its :class:`FrameLogger`, and
+    its lag), flushes every ``flush_every`` frames and keeps the counts."""
 
     def __init__(self, logger: FrameLogger, rec, progress: Callable[[int], None] | None) -> None:
         super().__init__(name="contact-viz-follow-log", daemon=True)
@@ -199,7 +199,6 @@ class _FrameLog(threading.Thread):
         self.error: BaseException | None = None
         self.latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
         self.counts = {"series": 0, "unfiltered": 0, "replayed": 0}
-        self.held_force: list[dict[str, str]] = []  # rows of frames not there yet
         self.start()
 
     def put(self, job: _Job) -> None:
@@ -241,9 +240,6 @@ class _FrameLog(threading.Thread):
 
     def _log(self, job: _Job) -> None:
         logger, session = self.logger, self.logger.session
-        if job.kind == "force":
-            self.held_force = _log_force(self.rec, session, self.held_force + job.rows)
-            return
         if job.kind == "series":
             self.counts["series"] += 1
             result = job.result.result() if job.result is not None else None
@@ -264,8 +260,6 @@ class _FrameLog(threading.Thread):
                 flush(self.rec)
             if self.progress is not None:
                 self.progress(logger.done)
-        if self.held_force:
-            self.held_force = _log_force(self.rec, session, self.held_force)
 
 
 def _wait_for_session(root: Path, params: FollowParams, stop: Callable[[], bool] | None,
@@ -308,14 +302,16 @@ def _result(session, index: int, options: DebuggerOptions) -> FrameResult:
 
 
 def _log_force(rec, session, rows: list[dict[str, str]]) -> list[dict[str, str]]:
-    """Log force rows at their frame (``frame`` column) or nearest frame time (``timestamp``); returns the
-    rows whose frame is not there yet (the last 10 000: rows of frames that never come are not kept forever)."""
+    """Log force rows at their frame (``frame`` column; among the last 256) or nearest frame time
+    (``timestamp``); returns the rows whose frame is not there yet (the last 10 000). A numbered row of a
+    frame older than the newest one but not among the last 256 (skipped, or long past) is dropped."""
     if not len(session):
         return rows[-10_000:]
     held = []
     times = session.timestamps_s
     recent = enumerate(session.stems[-256:], start=max(len(session) - 256, 0))
     index_of = {key: i for i, stem in recent for key in ((stem, str(int(stem))) if stem.isdigit() else (stem,))}
+    newest = int(session.stems[-1]) if session.stems[-1].isdigit() else None
     for row in rows:
         try:
             force = [float(row[k]) for k in ("fx", "fy", "fz")]
@@ -324,6 +320,8 @@ def _log_force(rec, session, rows: list[dict[str, str]]) -> list[dict[str, str]]
         if "frame" in row:  # a stem, or its number ("7" for 000007), as open_session matches them
             frame = row["frame"]
             index = index_of.get(str(int(frame)) if frame.isdigit() else frame)
+            if index is None and newest is not None and frame.isdigit() and int(frame) <= newest:
+                continue  # its frame was skipped, or passed long ago
         else:
             t = float(row.get("timestamp", "nan"))
             index = int(np.searchsorted(times, t)) if t <= times[-1] else None
