@@ -3,11 +3,12 @@ complete (:class:`contact_viz.io.live.SessionFollower`), through the same per-fr
 finished session (:class:`contact_viz.viz.frame_log.FrameLogger`), with the causal posterior.
 
 With ``from_start``, the frames there at the start are shown whole, one after another (a replay;
-they are not counted in the latency). Falling behind: when several new frames are complete at once,
-the newest is shown whole and the older ones only in the series (distance, signal, posterior): the causal filter sees every frame. With SGBM
-depth (no depth/ in the session) a frame shown only in the series is not matched either: the filter
-then steps over it without an observation, and the summary counts it. The lag (a frame's files
-complete -> its data logged, ms) is a series of its own (``series/lag_ms``).
+they are not counted in the latency). Falling behind: when several new frames are complete while the
+one before them is read and logged, the newest is shown whole and the older ones only in the series
+(distance, signal, posterior): the causal filter sees every frame. With SGBM depth (no depth/ in the
+session) a frame shown only in the series is not matched either: the filter then steps over it without
+an observation, and the summary counts it. The lag (a frame's last file completed -> its data logged,
+ms) is a series of its own (``series/lag_ms``).
 """
 
 from __future__ import annotations
@@ -85,7 +86,8 @@ def follow_session(
     Three stages overlap: this thread polls the folders and decides how each new frame is shown, two
     worker threads read it (its patch, as `extract` computes it, beside its images), and a logging
     thread logs the frames in order (:class:`_FrameLog`). One frame is read while the one before it is
-    logged; a frame that completes while a newer whole frame already waits is shown in the series only.
+    logged; the frames that complete meanwhile are taken together: the newest whole, the older ones in
+    the series only.
     """
     if options.hand_eye is not None:
         raise ValueError("--hand-eye: not available with --follow (kinematics.csv is read whole)")
