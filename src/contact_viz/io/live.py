@@ -171,9 +171,9 @@ class SessionFollower:
     """The complete frames of a session being recorded, appended to one growing :class:`Session`.
 
     ``new``: the session was made after following began, so every frame in it is new (taken, and not
-    replayed with ``from_start``). ``open_kwargs`` go to :func:`contact_viz.io.session.open_session`. :meth:`poll` returns the
-    indices added since the last call, each with the time (``time.monotonic``) it was found complete;
-    :attr:`session` is None until the first frame is.
+    replayed with ``from_start``). ``open_kwargs`` go to :func:`contact_viz.io.session.open_session`.
+    :meth:`poll` returns the indices added since the last call, each with the time (``time.monotonic``)
+    its last file was completed; :attr:`session` is None until the first frame is.
     """
 
     def __init__(self, root: str | Path, params: FollowParams = FollowParams(), *, new: bool = False,
@@ -191,8 +191,8 @@ class SessionFollower:
             self.layers.remove("disparity")  # depth/ wins, as in open_session
         self.frames_csv = CsvTail(self.root / "frames.csv") if (self.root / "frames.csv").is_file() else None
         self.force_csv = CsvTail(self.root / "force.csv")
-        self.times: dict[str, float] = {}  # frames.csv rows not yet used: stem -> s
-        self.row_read: dict[str, float] = {}  # when those rows were appended, at the latest (time.time() s)
+        # frames.csv rows not yet used: stem -> (its time, s; when it was appended, at the latest: time.time() s)
+        self.times: dict[str, tuple[float, float]] = {}
         self.files = _FileWatch(params.settle_s)
         self.pending: dict[str, float] = {}  # stems whose left image is there, not yet taken -> when first seen
         self.done: set[str] = set()  # stems taken or skipped (pruned as the session moves on)
@@ -277,8 +277,8 @@ class SessionFollower:
         if self.frames_csv is not None:
             for row in self.frames_csv.rows():
                 try:
-                    self.times[row["frame"]] = float(row["timestamp"])
-                    self.row_read[row["frame"]] = min(self.frames_csv.changed, now + wall_offset)
+                    self.times[row["frame"]] = (float(row["timestamp"]),
+                                                min(self.frames_csv.changed, now + wall_offset))
                 except (KeyError, ValueError):
                     raise SessionError(self.frames_csv.path, f"line {self.frames_csv.line}: expected frame,timestamp "
                                        "(stem, seconds)") from None
@@ -294,7 +294,6 @@ class SessionFollower:
                               f"{self.params.frame_timeout_s:g} s (--frame-timeout)", SessionWarning, stacklevel=2)
                 self.skipped.append(stem)
                 self.times.pop(stem, None)
-                self.row_read.pop(stem, None)
                 self._ready.pop(stem, None)
             else:
                 break  # frames are taken in order: wait for this one
@@ -323,7 +322,7 @@ class SessionFollower:
         if self.frames_csv is not None:
             if stem not in self.times:
                 return {}, f"{self.frames_csv.path} row of frame {stem}", last
-            last = max(last, self.row_read.get(stem, last))
+            last = max(last, self.times[stem][1])
         del self._ready[stem]
         return {layer: path for layer, (path, _) in files.items()}, None, last
 
@@ -346,7 +345,6 @@ class SessionFollower:
                 return []
             for stem in stems:
                 self.times.pop(stem, None)
-                self.row_read.pop(stem, None)
             self.done.update(stems)
             return list(enumerate(completed))
         session = self.session
@@ -356,9 +354,7 @@ class SessionFollower:
             for layer, path in files.items():
                 by_layer.setdefault("depth" if layer == "disparity" else layer, {})[stem] = path
         if self.frames_csv is not None:
-            times = [self.times.pop(stem) for stem in stems]
-            for stem in stems:
-                self.row_read.pop(stem, None)
+            times = [self.times.pop(stem)[0] for stem in stems]
         else:
             times = [(first + i) / session.fps for i in range(len(stems))]
         session.extend(stems, by_layer, times)
