@@ -187,11 +187,52 @@ def test_border_entry_and_exit_and_patch_moves_are_not_failures():
     # distance jumps: explained when the patch moved (another part of the tool), not otherwise
     checker = FrameChecker(p, 200)
     codes(checker, 0, replace(ok, depth_digest=b"a"), PatchNumbers(0.010, (50.0, 50.0), None))
-    assert codes(checker, 1, replace(ok, depth_digest=b"b"), PatchNumbers(0.020, (90.0, 50.0), None)) == []
-    assert codes(checker, 2, replace(ok, depth_digest=b"c"), PatchNumbers(0.030, (91.0, 50.0), None)) == \
+    assert codes(checker, 1, replace(ok, depth_digest=b"b"), PatchNumbers(0.005, (90.0, 50.0), None)) == []
+    assert codes(checker, 2, replace(ok, depth_digest=b"c"), PatchNumbers(0.015, (91.0, 50.0), None)) == \
         ["distance_jump"]
-    # far away the allowed jump grows with the distance (5 mm + 20%)
-    assert codes(checker, 3, replace(ok, depth_digest=b"d"), PatchNumbers(0.040, (91.0, 50.0), None)) == []
+    # far away the allowed jump grows with the distance (5 mm + 60%: 10 mm at 15 mm is within 14 mm)
+    assert codes(checker, 3, replace(ok, depth_digest=b"d"), PatchNumbers(0.025, (91.0, 50.0), None)) == []
+
+
+def test_a_check_fires_on_a_clear_crossing_and_stops_on_a_clear_return():
+    """The margin (DiagnosticParams.margin): a score must pass 1 + margin to fire, then stays fired until it falls
+    below 1 - margin; a score in between keeps the decision of the frame before."""
+    p = DiagnosticParams(margin=0.05)
+    checker = FrameChecker(p, 200)
+    ok = _measures()
+    steps = [(1.02, []), (1.06, ["tool_width"]), (0.97, ["tool_width"]), (1.02, ["tool_width"]), (0.94, []),
+             (1.04, []), (1.051, ["tool_width"])]
+    for i, (score, expected) in enumerate(steps):
+        measures = replace(ok, width_ratio=score * p.max_width_ratio, depth_digest=bytes([i]))
+        assert codes(checker, i, measures) == expected, (i, score)
+    # a frame the check is not decided at (here: a bad frame) starts the next one unfired
+    checker.reset_previous()
+    assert codes(checker, 9, replace(ok, width_ratio=1.02 * p.max_width_ratio, depth_digest=b"z")) == []
+    # margin 0: the threshold itself decides
+    strict = FrameChecker(replace(p, margin=0.0), 200)
+    assert codes(strict, 0, replace(ok, width_ratio=1.02 * p.max_width_ratio)) == ["tool_width"]
+
+
+def test_the_patch_moved_is_measured_between_its_places():
+    """The centre is the argmin of a score that can be flat; where two frames' places (the band pixels within
+    PLACE_M of the best score) touch, the patch stayed, however far its centre went."""
+    from contact_viz.checks.rules import PLACE_M, patch_place
+
+    band_xy = np.array([[10.0, 50.0], [11.0, 50.0], [40.0, 50.0], [41.0, 50.0]])
+    place = patch_place(band_xy, np.array([0.002, 0.002 + PLACE_M / 2, 0.002 + 2 * PLACE_M, np.nan]), 0.002)
+    np.testing.assert_array_equal(place, band_xy[:2])
+    assert patch_place(band_xy, np.full(4, np.nan), float("nan")) is None
+    ok = _measures()
+    near = np.array([[10.0, 50.0], [30.0, 50.0]])  # a flat score: two places 20 px apart score alike
+    for centres, expected in (((10.0, 30.0), ["distance_jump"]), ((30.0, 10.0), ["distance_jump"])):
+        checker = FrameChecker(DiagnosticParams(), 200)
+        codes(checker, 0, replace(ok, depth_digest=b"a"), PatchNumbers(0.004, (centres[0], 50.0), None, near))
+        assert codes(checker, 1, replace(ok, depth_digest=b"b"),
+                     PatchNumbers(0.016, (centres[1], 50.0), None, near[::-1])) == expected
+    # the same centres without places: the patch moved 20 px (more than 1% of 200 px), no failure
+    checker = FrameChecker(DiagnosticParams(), 200)
+    codes(checker, 0, replace(ok, depth_digest=b"a"), PatchNumbers(0.004, (10.0, 50.0), None))
+    assert codes(checker, 1, replace(ok, depth_digest=b"b"), PatchNumbers(0.016, (30.0, 50.0), None)) == []
 
 
 def test_force_lag_finds_an_injected_offset_and_not_a_clean_one():

@@ -126,17 +126,17 @@ def run(checker, frames):
 
 def test_each_instrument_has_its_own_history_and_is_named(base):
     checker = FrameChecker(PARAMS, W)
-    near, far = PatchNumbers(0.004, (40.0, 60.0), None), PatchNumbers(0.030, (150.0, 30.0), None)
+    near, far = PatchNumbers(0.004, (40.0, 60.0), None), PatchNumbers(0.010, (150.0, 30.0), None)
     frames = [(frame(base, i, t1=(5, 15), t2=(40, 50)), {1: near, 2: far}) for i in range(4)]
     # tool 2 only jumps (the patch stayed put): only tool 2's distance_jump fires
-    frames.append((frame(base, 4, t1=(5, 15), t2=(40, 50)), {1: near, 2: PatchNumbers(0.050, (151.0, 30.0), None)}))
+    frames.append((frame(base, 4, t1=(5, 15), t2=(40, 50)), {1: near, 2: PatchNumbers(0.030, (151.0, 30.0), None)}))
     fired = run(checker, frames)
-    assert all(not fired[i] for i in range(4)), fired  # 4 mm and 30 mm in one frame: each its own distance
+    assert all(not fired[i] for i in range(4)), fired  # 4 mm and 10 mm in one frame: each its own distance
     assert fired[4] == {("distance_jump", 2)}
     # the message names the instrument; a single-instrument session's does not
     msg = checker.check(5, frame(base, 5, t1=(5, 15), t2=(40, 50)), {1: near, 2: PatchNumbers(0.08, (151.0, 30.0),
                                                                                                   None)})[0][0].message
-    assert msg.startswith("tool 2: distance jumped while the patch stayed put: 50.0 -> 80.0 mm")
+    assert msg.startswith("tool 2: distance jumped while the patch stayed put: 30.0 -> 80.0 mm")
     single = FrameChecker(PARAMS, W)
     single.check(0, replace(base, depth_digest=b"a"), near)
     [jump] = single.check(1, replace(base, depth_digest=b"b"), PatchNumbers(0.03, (40.0, 60.0), None))[0]

@@ -78,11 +78,11 @@ def test_no_depth_beside_the_tool_names_the_depth_source_not_the_mask():
     assert old["mask_on_tissue"].likely_cause == MASK_CAUSE and old["depth_holes"].likely_cause != STEREO_FAILED
 
 
-def test_no_depth_beside_the_tool_threshold_is_strict_and_nan_is_not_missing():
+def test_no_depth_beside_the_tool_needs_a_clear_crossing_and_nan_is_not_missing():
     ok = measure_frame(*scene(), FX, BASELINE, PARAMS)
     assert ok.beside_valid_fraction == 1 and _check(ok)[0] == {}
-    t = PARAMS.min_beside_valid_fraction
-    assert _check(replace(ok, beside_valid_fraction=t))[0] == {}
+    t = PARAMS.min_beside_valid_fraction / (1 + PARAMS.margin)  # fires below this (the score t / value above 1 + m)
+    assert _check(replace(ok, beside_valid_fraction=t + 1e-3))[0] == {}
     below = _check(replace(ok, beside_valid_fraction=t - 1e-3, inside_far_fraction=0.5, outside_tool_fraction=0.9))[0]
     assert set(below) == {"depth_holes"} and below["depth_holes"].likely_cause == STEREO_FAILED
     assert _check(replace(ok, beside_valid_fraction=math.nan))[0] == {}

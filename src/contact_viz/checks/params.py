@@ -16,8 +16,16 @@ class DiagnosticParams:
 
     Lengths in pixels are given as fractions of the image width (``*_frac``) so that one setting
     fits every resolution; depths in metres with a relative part (fraction of the tool's depth).
-    A check fires when its measured value is strictly beyond its threshold.
+    A check's score is its measured value over its threshold, oriented so that > 1 means beyond it;
+    a check fires once its score clearly crosses 1 (by ``margin``) and stops once it clearly falls back.
     """
+
+    # ---- decisions ----
+    # a score within this share of 1 is no clear crossing: the check keeps its decision of the frame before for
+    # the same instrument (fires above 1 + margin, stops below 1 - margin; a frame after a gap starts unfired), so
+    # that the input's last bits (another processor's) cannot flip it. Measured: a 1e-5 relative change of the
+    # depth and +-1 grey level on 2% of the pixels moves scores by at most 0.025 (bench_diagnostics --perturb), ratio
+    margin: float = checked(0.05, ge=0, lt=1)
 
     # ---- mask ----
     min_tool_area_px: int = checked(1, ge=1)  # fewer tool-mask pixels than this = no tool, px
@@ -83,10 +91,14 @@ class DiagnosticParams:
     # the image changed: mean |grey difference| of a 32x18 thumbnail above this, grey levels
     image_change_grey: float = checked(0.5, ge=0)
     distance_jump_m: float = checked(0.005, gt=0)  # change of the patch distance between frames that fires, m ...
-    # ... plus this share of the smaller |distance| (far away it is noisy and harmless), fraction
-    distance_jump_rel: float = checked(0.2, ge=0)
-    # ... unless the patch centre moved more than this (another part of the tool), x image width
+    # ... plus this share of the smaller |distance| (far away it is noisy and harmless: the tissue seen beside a tool
+    # hovering 15-30 mm above it moves by up to 15 mm between frames of clean synthetic sessions), fraction
+    distance_jump_rel: float = checked(0.6, ge=0)
+    # ... unless the patch moved more than this (another part of the tool), x image width: measured between the
+    # patch's places (the band pixels scoring within a hair of the patch, checks.rules.patch_place), not its
+    # centres, an argmin that a 1e-5 change of the depth moved by 3-7 px on a flat score (bench_diagnostics --perturb)
     patch_move_frac: float = checked(0.01, ge=0, le=1)
+    patch_place: bool = True  # False: measure it between the patch centres (strict, for comparison), -
     pad_frac: float = checked(0.05, gt=0, le=1)  # margin around the tool's box the frame checks look at, x image width
     # the frame checks look at every n-th pixel of the mask and depth, and at the images shrunk n times, n the
     # smallest integer that brings the width to at most this, px. The thresholds were chosen at 320 px; measured

@@ -27,6 +27,7 @@ import math
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from itertools import permutations
 from typing import Literal
 
@@ -39,7 +40,7 @@ ENTERING_FRAMES = 5  # a tool's first frames in view (at the border) do not rais
 MAX_SWAP_TOOLS = 6  # id swaps are looked for among at most this many instruments (every permutation is tried)
 
 __all__ = ["CHECKS", "Diagnostic", "DepthSource", "FrameChecker", "PatchNumbers", "SESSION_CHECKS", "fired_ranges",
-           "no_depth_beside_cause"]
+           "no_depth_beside_cause", "patch_place"]
 
 DepthSource = Literal["depth", "disparity", "sgbm"]  # where a session's depth comes from (io.session.DEPTH_SOURCES)
 
@@ -107,6 +108,36 @@ class PatchNumbers:
     distance_m: float  # patch distance, m (NaN = none)
     center_xy: tuple[float, float] | None  # patch centre, px
     reason: str | None  # why no patch (None = found)
+    # (K, 2) x, y of the band pixels scoring within a hair of the patch's (patch_place): where the patch could as
+    # well be. The centre is their argmin, which a tiny change of the depth moves among them; None = the centre only
+    place_xy: np.ndarray | None = None
+
+
+PLACE_M = 2e-5  # a band pixel is at the patch's place when its score is within this of the patch's, m
+PLACE_MAX = 512  # at most this many pixels of the place (the best-scored), px
+
+
+def patch_place(band_xy: np.ndarray, band_score_m: np.ndarray, score_m: float) -> np.ndarray | None:
+    """The patch's place: the x, y (K, 2) of the band pixels whose score s is within ``PLACE_M`` of the patch's
+    s* (at most ``PLACE_MAX``, the best-scored); None without a patch. A change of the depth by 1e-5 (another
+    processor's renderer, or more) changes s by about a micrometre, a twentieth of that tolerance."""
+    if not math.isfinite(score_m):
+        return None
+    near = np.flatnonzero(band_score_m <= score_m + PLACE_M)
+    if len(near) > PLACE_MAX:
+        near = near[np.argsort(band_score_m[near], kind="stable")[:PLACE_MAX]]
+    return np.asarray(band_xy, dtype=np.float64)[near]
+
+
+def _moved(now: PatchNumbers, before: PatchNumbers) -> float:
+    """How far the patch moved between two frames, px: the distance between the nearest pixels of their places
+    (0 when they share one), or between their centres where a place is not known."""
+    if now.place_xy is not None and before.place_xy is not None and len(now.place_xy) and len(before.place_xy):
+        gaps = now.place_xy[:, None, :] - before.place_xy[None, :, :]
+        return float(np.sqrt((gaps ** 2).sum(axis=-1).min()))
+    if now.center_xy is None or before.center_xy is None:
+        return math.inf
+    return math.dist(now.center_xy, before.center_xy)
 
 
 def fired_ranges(frames: list[int]) -> list[tuple[int, int]]:
@@ -134,6 +165,28 @@ def _covered(a: np.ndarray, by: np.ndarray) -> float:
     """Share of coverage grid ``a`` that ``by`` covers, 0-1."""
     total = float(a.sum())
     return float(np.minimum(a, by).sum()) / total if total > 0 else 0.0
+
+
+class _Decisions:
+    """Each check's decision per instrument with a margin (DiagnosticParams.margin): a score (> 1 = beyond the
+    threshold) fires above ``1 + margin`` and stops below ``1 - margin``; in between the decision of the frame
+    before stands (unfired when the check was not decided at the frame before: absent tool, skipped check)."""
+
+    def __init__(self, margin: float) -> None:
+        self.margin = margin
+        self._before: dict[tuple[int, str], bool] = {}
+        self._now: dict[tuple[int, str], bool] = {}
+
+    def next_frame(self) -> None:
+        self._before, self._now = self._now, {}
+
+    def forget(self) -> None:
+        self._before, self._now = {}, {}
+
+    def decide(self, key: tuple[int, str], score: float) -> bool:
+        fired = score > (1.0 - self.margin if self._before.get(key, False) else 1.0 + self.margin)
+        self._now[key] = fired
+        return fired
 
 
 @dataclass
@@ -186,10 +239,12 @@ class FrameChecker:
         self._track_of: dict[int, int] = {}  # object id -> track key
         self._ids_seen: set[int] = set()
         self._prev_frame: tuple[bytes, np.ndarray, int] | None = None  # depth digest, thumb, area of the last frame
+        self._decisions = _Decisions(params.margin)
 
     def reset_previous(self) -> None:
         """Forget the previous frame (after a bad frame the next one has no predecessor for frozen depth)."""
         self._prev_frame = None
+        self._decisions.forget()
         for track in self._tracks.values():
             track.prev = None
 
@@ -219,6 +274,7 @@ class FrameChecker:
             patches = None if patch is None else {1: patch}
         fired: list[Diagnostic] = []
         scores: dict[str, float] = {}
+        self._decisions.next_frame()
         self._ids_seen.update(k for k, t in tools.items() if t.tool_area_px > 0)
         several = self.several if self.several is not None else (len(self._ids_seen) > 1
                                                                   or bool(self._ids_seen - {1}))
@@ -228,12 +284,15 @@ class FrameChecker:
             fired.append(Diagnostic(code, index, f"{prefix}{CHECKS[code][0]}: {text}: {cause or CHECKS[code][1]}",
                                     float(value), cause, tool))
 
-        def score(code: str, value: float, threshold: float, above: bool = True) -> bool:
+        def score(code: str, value: float, threshold: float, above: bool = True, *, key: int,
+                  decision: str | None = None) -> bool:
+            """Plot the score of ``code`` (the largest over the instruments) and decide it for the instrument of
+            track ``key`` with the margin (``decision``: the name of the decision when it is not the code's)."""
             if not math.isfinite(value):
                 return False
-            s = value / threshold if above else (threshold / value if value > 0 else math.inf)
+            s = value / threshold if above else (threshold / value if value > 0 else math.inf if threshold > 0 else 0.0)
             scores[code] = max(scores.get(code, 0.0), float(min(s, 10.0)))
-            return value > threshold if above else value < threshold
+            return self._decisions.decide((key, decision or code), s)
 
         def present(t: FrameMeasures | None) -> bool:
             return t is not None and t.tool_area_px >= p.min_tool_area_px
@@ -398,6 +457,7 @@ class FrameChecker:
     def _check_present(self, k: int, track: _Track, m: FrameMeasures, fire, score) -> None:
         """The checks of one instrument's mask and depth (its mask has at least min_tool_area_px)."""
         p = self.params
+        score = partial(score, key=track.key)
         if score("extra_blob", m.extra_blob_px, p.min_blob_area_fraction * m.tool_area_px):
             fire("extra_blob", f"{m.extra_blob_px} px blob at ({m.extra_blob_xy[0]:.0f}, {m.extra_blob_xy[1]:.0f})",
                  m.extra_blob_px, tool=k)
@@ -414,7 +474,8 @@ class FrameChecker:
         # no depth beside the tool (NaN = not measured: not missing): the depth source failed there, and the
         # depth-against-mask shares would rest on the few pixels with depth (the mask is not to blame)
         beside = m.beside_valid_fraction
-        no_beside = beside < p.min_beside_valid_fraction  # False for NaN
+        # (depth_holes' score is the larger of its two measures'; NaN = not measured: never missing)
+        no_beside = score("depth_holes", beside, p.min_beside_valid_fraction, above=False, decision="no_beside")
         if not no_beside and score("mask_on_tissue", m.inside_far_fraction, p.max_inside_far_fraction):
             fire("mask_on_tissue", f"{m.inside_far_fraction:.1%} of the rim (> {p.max_inside_far_fraction:.1%})",
                  m.inside_far_fraction, tool=k)
@@ -423,11 +484,6 @@ class FrameChecker:
                                        f"(> {p.max_outside_tool_fraction:.0%})", m.outside_tool_fraction, tool=k)
         holes = score("depth_holes", m.hole_fraction, p.max_hole_fraction)
         if no_beside:
-            missing = p.min_beside_valid_fraction / beside if beside > 0 else math.inf
-            # (the score of this instrument: at least its holes' score; the frame's is the largest)
-            holes_score = m.hole_fraction / p.max_hole_fraction if math.isfinite(m.hole_fraction) else 0.0
-            own = float(min(max(missing, min(holes_score, 10.0)), 10.0))
-            score("depth_holes", own, 1.0)
             fire("depth_holes", f"{beside:.0%} valid just outside the mask (< {p.min_beside_valid_fraction:.0%}; "
                                 f"{m.hole_fraction:.0%} invalid on and around the tool)", beside,
                  no_depth_beside_cause(self.depth_source), tool=k)
@@ -460,10 +516,9 @@ class FrameChecker:
         pp = track.prev_patch
         if pp is not None and math.isfinite(patch.distance_m) and math.isfinite(pp.distance_m):
             jump = abs(patch.distance_m - pp.distance_m)
-            moved = math.inf if patch.center_xy is None or pp.center_xy is None else math.dist(
-                patch.center_xy, pp.center_xy)
+            moved = _moved(patch, pp)
             limit = p.distance_jump_m + p.distance_jump_rel * min(abs(patch.distance_m), abs(pp.distance_m))
-            if moved <= p.patch_move_frac * self.width and score("distance_jump", jump, limit):
+            if moved <= p.patch_move_frac * self.width and score("distance_jump", jump, limit, key=track.key):
                 fire("distance_jump", f"{1000 * pp.distance_m:.1f} -> {1000 * patch.distance_m:.1f} mm "
                                       f"(jump {1000 * jump:.1f} mm > {1000 * limit:.1f} mm, patch "
                                       f"moved {moved:.0f} px)", jump, tool=k)

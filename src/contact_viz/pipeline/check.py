@@ -23,7 +23,8 @@ import numpy as np
 from contact_viz import __version__
 from contact_viz.checks.frame import FrameMeasures, ToolMeasures, analysis_step, measure_tools, shrink_grey
 from contact_viz.checks.params import DiagnosticParams
-from contact_viz.checks.rules import CHECKS, SESSION_CHECKS, DepthSource, FrameChecker, PatchNumbers, fired_ranges
+from contact_viz.checks.rules import (CHECKS, SESSION_CHECKS, DepthSource, FrameChecker, PatchNumbers, fired_ranges,
+                                     patch_place)
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
 from contact_viz.errors import SessionError
 from contact_viz.io.decoders import JPEG_REDUCTIONS, read_jpeg_reduced
@@ -102,10 +103,12 @@ def measure_session_frame(session: Session, index: int, patch_params: PatchParam
     return record if problem is None else replace(record, image_problem=problem)
 
 
-def patch_numbers(patch) -> PatchNumbers:
+def patch_numbers(patch, params: DiagnosticParams = DiagnosticParams()) -> PatchNumbers:
     """What the checks use of a :class:`contact_viz.geometry.patch.PatchResult`."""
+    place = None if patch.center_xy is None or not params.patch_place else patch_place(
+        patch.band_yx[:, ::-1], patch.band_score_m, float(patch.score_m))
     return PatchNumbers(float(patch.distance_m), None if patch.center_xy is None else
-                        (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason)
+                        (float(patch.center_xy[0]), float(patch.center_xy[1])), patch.reason, place)
 
 
 def measure_frame_tools(frame, tool_patches, left_grey, right_grey, fx_px: float, baseline_m: float,
@@ -128,7 +131,7 @@ def measure_loaded_frame(session: Session, frame, patch, left_grey, right_grey, 
         tool_patches = {1: patch} if frame.tool_mask is not None and frame.tool_mask.any() else {}
     measures = measure_frame_tools(frame, tool_patches, left_grey, right_grey, float(K[0][0]),
                                    float(session.calibration.baseline_m), params, evidence)
-    numbers = {k: patch_numbers(p) for k, p in tool_patches.items()}
+    numbers = {k: patch_numbers(p, params) for k, p in tool_patches.items()}
     return FrameRecord(frame.index, measures, numbers, float(patch.signal))
 
 

@@ -22,9 +22,9 @@ from contact_viz.checks.params import DiagnosticParams
 from contact_viz.pipeline.check import CheckReport, check_session
 from contact_viz.synth.faults import ALL_FAULT_KINDS, MULTI_FAULT_KINDS, inject_fault, read_mask_ids
 
-__all__ = ["InjectionOutcome", "SEVERITY", "detection_table", "flagged_frames", "inject_and_check",
-           "inject_and_check_job", "instruments_visible", "make_session_job", "plan_pair_windows", "plan_windows",
-           "read_truth_contact"]
+__all__ = ["Injection", "InjectionOutcome", "SEVERITY", "decisions", "detection_table", "flagged_frames", "inject",
+           "inject_and_check", "inject_and_check_job", "instruments_visible", "make_session_job", "outcome",
+           "plan_pair_windows", "plan_windows", "read_truth_contact"]
 
 # Severity drawn per injection (see contact_viz.synth.faults), for a 320 px wide image: lengths scale with width.
 SEVERITY: dict[str, tuple] = {
@@ -181,38 +181,47 @@ def flagged_frames(report: CheckReport, ignore: Iterable[str] = ()) -> set[int]:
     return out
 
 
-def inject_and_check(session_dir: str | Path, work_dir: str | Path, kind: str, seed: int,
-                     params: DiagnosticParams | None = None, keep: bool = False) -> InjectionOutcome:
-    """Inject ``kind`` into ``session_dir`` in an approach and a contact window, check the copy."""
+@dataclass(frozen=True)
+class Injection:
+    """A copy of a session with one failure injected (:func:`inject`), before it is checked."""
+
+    kind: str
+    session: str  # the clean session's name
+    path: Path  # the copy
+    severity: float
+    windows: dict[str, tuple[int, ...]]  # per phase ("approach", "contact") the injected frames
+
+
+def inject(session_dir: str | Path, work_dir: str | Path, kind: str, seed: int) -> Injection:
+    """Inject ``kind`` into a copy of ``session_dir`` (in ``work_dir``) in an approach and a contact window."""
     session_dir = Path(session_dir)
     rng = np.random.default_rng(seed)
     if kind in MULTI_FAULT_KINDS:
         windows = plan_pair_windows(read_truth_contact(session_dir), rng, instruments_visible(session_dir).all(axis=1))
     else:
         windows = plan_windows(read_truth_contact(session_dir), rng, _tool_visible(session_dir))
-    width = _image_width(session_dir)
-    severity = _severity(kind, rng, width)
+    severity = _severity(kind, rng, _image_width(session_dir))
     dst = Path(work_dir) / f"{session_dir.name}_{kind}_{seed}"
     if dst.exists():
         shutil.rmtree(dst)
-    frames = windows["approach"] + windows["contact"]
-    fault = inject_fault(session_dir, dst, kind, frames, severity, seed=seed)
-    try:
-        report = check_session(dst, params=params)
-    finally:
-        if not keep:
-            shutil.rmtree(dst, ignore_errors=True)
+    fault = inject_fault(session_dir, dst, kind, windows["approach"] + windows["contact"], severity, seed=seed)
     if kind == "force_offset":  # the whole session is shifted: every frame of each phase is injected
         contact = read_truth_contact(session_dir).astype(bool)
         windows = {"approach": tuple(int(i) for i in np.nonzero(~contact)[0]),
                    "contact": tuple(int(i) for i in np.nonzero(contact)[0])}
+    return Injection(kind, session_dir.name, dst, fault.severity, windows)
+
+
+def outcome(injection: Injection, report: CheckReport) -> InjectionOutcome:
+    """What ``report`` (`check` on the injected copy) flagged of the injected frames."""
     # a frame failure counts only where a frame check fired (a session check firing on every frame would
     # flag them all); the force offset only where the session check did
     from contact_viz.checks.rules import SESSION_CHECKS
 
-    frame_level = kind != "force_offset"
-    flagged = flagged_frames(report, ignore=SESSION_CHECKS if frame_level else ())
-    if not frame_level:
+    windows = injection.windows
+    if injection.kind != "force_offset":
+        flagged = flagged_frames(report, ignore=SESSION_CHECKS)
+    else:
         flagged = flagged_frames(report, ignore=[c for c in report.fired if c != "force_lag"])
     injected_all = set(windows["approach"]) | set(windows["contact"])
     checks = {}
@@ -220,9 +229,29 @@ def inject_and_check(session_dir: str | Path, work_dir: str | Path, kind: str, s
         hit = sum(1 for a, b in ranges for i in range(a, b + 1) if i in injected_all)
         if hit:
             checks[code] = hit
-    return InjectionOutcome(kind, session_dir.name, fault.severity, windows,
+    return InjectionOutcome(injection.kind, injection.session, injection.severity, windows,
                             {phase: tuple(i for i in idx if i in flagged) for phase, idx in windows.items()},
                             checks, report)
+
+
+def inject_and_check(session_dir: str | Path, work_dir: str | Path, kind: str, seed: int,
+                     params: DiagnosticParams | None = None, keep: bool = False) -> InjectionOutcome:
+    """Inject ``kind`` into ``session_dir`` in an approach and a contact window, check the copy."""
+    injection = inject(session_dir, work_dir, kind, seed)
+    try:
+        report = check_session(injection.path, params=params)
+    finally:
+        if not keep:
+            shutil.rmtree(injection.path, ignore_errors=True)
+    return outcome(injection, report)
+
+
+def decisions(report: CheckReport) -> set[tuple[str, int | None, int]]:
+    """Every decision to fire in ``report``: (check, instrument or None, frame)."""
+    out = {(code, None, i) for code, ranges in report.fired.items() for a, b in ranges for i in range(a, b + 1)}
+    out |= {(code, tool, i) for code, tools in report.tool_fired.items() for tool, ranges in tools.items()
+            for a, b in ranges for i in range(a, b + 1)}
+    return out
 
 
 def _tool_visible(session_dir: Path) -> np.ndarray:

@@ -35,7 +35,9 @@ The mask faults of one instrument change object id 1 (``target_id``) and leave t
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
+import json
 import math
 import os
 import shutil
@@ -49,8 +51,8 @@ from PIL import Image
 from contact_viz.io.atomic import atomic_write
 from contact_viz.synth.sensors import spread_tool_depth
 
-__all__ = ["ALL_FAULT_KINDS", "FAULT_KINDS", "MULTI_FAULT_KINDS", "Fault", "inject_fault", "read_mask_ids",
-           "read_truth_phases"]
+__all__ = ["ALL_FAULT_KINDS", "FAULT_KINDS", "MULTI_FAULT_KINDS", "Fault", "inject_fault", "perturb_session",
+           "read_mask_ids", "read_truth_phases"]
 
 FAULT_KINDS = (
     "mask_dropout", "mask_drift", "mask_bleed", "second_object", "depth_holes", "edge_bleeding",
@@ -318,3 +320,42 @@ def _inject_ids(src: Path, dst: Path, kind: str, frames: tuple[int, ...], stems:
             out[(ids == 1) | (ids == 2)] = keep
         _write_ids(dst / "masks" / f"{stems[i]}.png", out, like)
     return Fault(kind, frames, float(keep) if kind == "tools_merged" else 0.0)
+
+
+def perturb_session(src: str | Path, dst: str | Path, *, depth_rel: float = 1e-5, grey_share: float = 0.02,
+                    seed: int = 0) -> None:
+    """Copy the session ``src`` to ``dst`` (which must not exist) with its inputs changed as much as another
+    processor changes a synthetic session, or more: every depth value (.npy) times 1 + u, u uniform in
+    +-``depth_rel``; ``grey_share`` of the pixels of every left and right image one grey level up or down (a JPEG
+    image is encoded again at the session's quality, which changes it a little more). Not a failure: a check
+    whose decisions it changes decides on a knife's edge (benchmarks/bench_diagnostics.py --perturb)."""
+    src, dst = Path(src), Path(dst)
+    if dst.exists():
+        raise ValueError(f"{dst}: already exists")
+    _link_tree(src, dst)
+
+    def rng_for(data: bytes) -> np.random.Generator:  # files alike are changed alike (a repeated depth map stays so)
+        return np.random.default_rng([seed, int.from_bytes(hashlib.blake2b(data, digest_size=8).digest(), "little")])
+
+    try:
+        quality = int(json.loads((src / "session.json").read_text())["generator"]["jpeg_quality"])
+    except (OSError, ValueError, KeyError, TypeError):
+        quality = 92
+    for path in sorted((src / "depth").glob("*.npy")) if (src / "depth").is_dir() else []:
+        depth = np.load(path)
+        rng = rng_for(depth.tobytes())
+        _write_depth(dst / "depth" / path.name, depth * (1.0 + rng.uniform(-depth_rel, depth_rel, depth.shape)))
+    for side in ("left", "right"):
+        for path in sorted((src / side).iterdir()) if (src / side).is_dir() else []:
+            if path.name.startswith(".") or path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+                continue
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            rng = rng_for(image.tobytes())
+            step = (rng.random(image.shape[:2]) < grey_share) * rng.choice(np.array([-1, 1], np.int16), image.shape[:2])
+            image = np.clip(image.astype(np.int16) + (step[..., None] if image.ndim == 3 else step), 0, 255)
+            jpeg = path.suffix.lower() != ".png"
+            ok, data = cv2.imencode(path.suffix, image.astype(np.uint8),
+                                    [cv2.IMWRITE_JPEG_QUALITY, quality] if jpeg else [])
+            if not ok:
+                raise RuntimeError(f"{path}: OpenCV could not encode the image again")
+            _replace(dst / side / path.name, lambda handle: handle.write(data.tobytes()))

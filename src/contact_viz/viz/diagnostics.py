@@ -75,7 +75,7 @@ class DiagnosticsTracker:
                 tool_patches = {1: patch} if frame.tool_mask is not None and frame.tool_mask.any() else {}
             measures = measure_frame_tools(frame, tool_patches, left_grey, right_grey, self.fx_px, self.baseline_m,
                                            self.params, evidence)
-            numbers = {k: patch_numbers(p) for k, p in tool_patches.items()}
+            numbers = {k: patch_numbers(p, self.params) for k, p in tool_patches.items()}
             fired, scores = self.checker.check(frame.index, measures, numbers)
             ev = measures.evidence
             self._signal[frame.index] = float(patch.signal)
