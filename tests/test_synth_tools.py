@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import math
 from pathlib import Path
@@ -24,7 +23,6 @@ from contact_viz.synth import PHANTOMS, SynthParams, generate_session
 # A cup session with two contact runs of instrument 1 (near miss in the first, crossing in the second).
 PAIR = {"phantom": "cup", "seed": 0, "frames": 135, "width": 256, "height": 144}
 NOISELESS = {"disparity_noise_px": 0.0, "edge_fattening_px": 0.0, "hole_blob_count": 0.0}
-NEW_GENERATOR_KEYS = ("tools", "shaft_elevation_deg")
 
 
 def _read_csv(path: Path) -> list[dict[str, str]]:
@@ -60,60 +58,13 @@ def _analytic(track, i: int, params: SynthParams) -> tuple[np.ndarray, np.ndarra
     return ids.reshape(rows.shape) > 0, z.reshape(rows.shape)
 
 
-# -- one instrument: every file as before --------------------------------------------------------
-
-# Digests of sessions written by the generator before SynthParams.tools and shaft_elevation_deg existed
-# (commit 1d0a2ef: `contact-viz synth NAME --phantom P --seed S --frames N --size WxH`, then _digests
-# below on the folder). session.json is hashed without the two new generator keys, its only change (it
-# gains "tools": 1, "shaft_elevation_deg": null). The images pin this environment's numpy, OpenCV,
-# open3d and libjpeg: after an upgrade of those, regenerate the digests with the code of that commit.
-ONE_TOOL_DIGESTS = {
-    ("ref-cup", "cup", 5, 20, 320, 180): {
-        "left": "f334d6343222ab9b", "right": "4dbc350f71a249e4", "masks": "20c76249e4956fc1",
-        "depth": "0e21da7f11e6a9dd", "K.txt": "109299c6ff2e8fba", "force.csv": "318fc62159281d20",
-        "truth.csv": "4f5a6d52f8eaf55e", "session.json": "ad91ccf9663dd152",
-    },
-    ("ref-glove", "glove", 5, 20, 320, 180): {
-        "left": "d1cdf579514b4379", "right": "2c47486b0f9d5cf7", "masks": "c39dee632e6782a7",
-        "depth": "3a29acc349148195", "K.txt": "109299c6ff2e8fba", "force.csv": "4deb8fe7b47cb542",
-        "truth.csv": "7fec284671eec675", "labels.csv": "05c6fc8f8ad9b703", "session.json": "5382862e830c57be",
-    },
-    ("ref-kidney", "kidney", 2, 12, 240, 136): {
-        "left": "fb4440593b2177d5", "right": "e6eabcc3ea5f5451", "masks": "d885bf4b30fa23da",
-        "depth": "cba2b4086f191ee8", "K.txt": "3a7d2dba42addef7", "force.csv": "ebe4d1fc8b9c338f",
-        "truth.csv": "705a5e083111f8d3", "session.json": "f4a1f85fc5b02d19",
-    },
-}
+# -- one instrument: the defaults make the session they always made (tests/test_synth_reference.py) ------
 
 
-def _digests(session: Path) -> dict[str, str]:
-    """sha256 (first 16 hex digits) of each folder of a session (names and bytes of its files, in order)
-    and of each table; session.json as it was before the new generator keys."""
-    out = {}
-    for part in ("left", "right", "masks", "depth"):
-        h = hashlib.sha256()
-        for f in sorted((session / part).iterdir()):
-            h.update(f.name.encode())
-            h.update(f.read_bytes())
-        out[part] = h.hexdigest()[:16]
-    for name in ("K.txt", "force.csv", "truth.csv", "labels.csv"):
-        if (session / name).exists():
-            out[name] = hashlib.sha256((session / name).read_bytes()).hexdigest()[:16]
-    meta = json.loads((session / "session.json").read_text())
-    for key in NEW_GENERATOR_KEYS:
-        meta["generator"].pop(key, None)
-    out["session.json"] = hashlib.sha256((json.dumps(meta, indent=2) + "\n").encode()).hexdigest()[:16]
-    return out
-
-
-@pytest.mark.parametrize("key", list(ONE_TOOL_DIGESTS), ids=[k[0] for k in ONE_TOOL_DIGESTS])
-def test_one_instrument_writes_the_same_files_as_before(key, tmp_path):
-    name, phantom, seed, frames, width, height = key
-    params = SynthParams(phantom=phantom, seed=seed, frames=frames, width=width, height=height)
-    assert params.tools == 1 and params.shaft_elevation_deg is None  # the defaults
-    session = generate_session(tmp_path / name, params)
-    assert _digests(session) == ONE_TOOL_DIGESTS[key]
-    generator = json.loads((session / "session.json").read_text())["generator"]
+def test_the_defaults_are_one_instrument_and_no_set_elevation(tmp_path):
+    params = SynthParams(phantom="cup", seed=5, frames=4, width=160, height=90)
+    assert params.tools == 1 and params.shaft_elevation_deg is None
+    generator = json.loads((generate_session(tmp_path / "s", params) / "session.json").read_text())["generator"]
     assert (generator["tools"], generator["shaft_elevation_deg"]) == (1, None)
 
 
