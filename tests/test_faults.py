@@ -209,6 +209,59 @@ def test_a_flush_to_a_viewer_that_stopped_taking_data_has_a_deadline(tmp_path):
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.fixture(scope="module")
+def dataset(session, tmp_path_factory) -> Path:
+    """Three copies of the session, named apart."""
+    sessions = tmp_path_factory.mktemp("dataset") / "sessions"
+    sessions.mkdir()
+    for k in range(3):
+        shutil.copytree(session, sessions / f"s{k}")
+        meta = json.loads((sessions / f"s{k}" / "session.json").read_text())
+        (sessions / f"s{k}" / "session.json").write_text(json.dumps({**meta, "name": f"s{k}"}))
+    return sessions
+
+
+def test_a_signal_at_any_moment_of_batch_under_load_stops_it_with_its_line(dataset, tmp_path):
+    """SIGHUP and SIGTERM at moments spread over a whole `batch` run (the pool starting, extract, between the
+    steps, view in the caller and in a worker, the results written), with two CPU hogs beside it: each run
+    stops within 10 s with its one line, or had finished; nothing is left running. (A signal in view used to
+    be taken by the recording as the end of a partial recording: the batch went on and exited 0.)"""
+    inputs = tree_hash(dataset)
+    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(2)]
+    try:
+        def run(out: Path) -> subprocess.Popen:
+            return start(["batch", str(dataset), "-o", str(out), "--steps", "extract,view", "--processes", "2",
+                          "--cache-dir", str(out.with_name(out.name + "_cache"))])
+
+        began = time.monotonic()
+        whole = run(tmp_path / "whole")
+        finish(whole, 120)
+        assert whole.returncode == 0
+        length = time.monotonic() - began
+        moments = [0.5, 0.2 * length, 0.35 * length, 0.5 * length, 0.65 * length, 0.8 * length]
+        for k, delay in enumerate(moments):
+            signum = (signal.SIGHUP, signal.SIGTERM)[k % 2]
+            out = tmp_path / f"out{k}"
+            proc = run(out)
+            time.sleep(delay)
+            running = proc.poll() is None
+            if running:
+                os.kill(proc.pid, signum)
+            stdout, stderr = finish(proc, 10)
+            stopped = f"stopped by {signal.Signals(signum).name}" + (
+                " (the terminal closed)" if signum == signal.SIGHUP else "")
+            if running:  # (a run that had finished before the signal had nothing to stop)
+                assert (proc.returncode, stderr.strip().splitlines()[-1]) == (128 + signum, stopped), (delay, stderr)
+                assert not (out / "summary.json").exists()
+            assert "Traceback" not in stderr + stdout, (delay, stderr)
+            assert [p for p in out.rglob(".*")] == [] if out.exists() else True
+            assert_group_gone(proc.pid)
+    finally:
+        for hog in hogs:
+            hog.kill()
+    assert tree_hash(dataset) == inputs
+
+
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
 def test_a_signal_mid_batch_stops_it_with_one_line_and_no_process_left(session, tmp_path, signum):
     before = tree_hash(session)

@@ -199,3 +199,23 @@ def test_bad_parameters_and_frames_are_refused():
         encoder.encode(np.zeros((144, 256), np.uint8), 0)
     assert psnr_db(np.zeros(4, np.uint8), np.zeros(4, np.uint8)) == math.inf
     assert psnr_db(np.zeros(4, np.uint8), np.full(4, 255, np.uint8)) == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("codec", ["av1", "h264"])
+def test_an_encoder_leaves_every_thread_and_child_process_at_the_normal_policy(codec):
+    """SVT-AV1, opened as root, makes the calling thread and its own threads real-time (SCHED_FIFO 99): a process
+    started afterwards inherited it, and two CPU-bound ones froze everything else on a 2-core machine."""
+    import os
+    import subprocess
+    import sys
+
+    encoder = VideoEncoder(64, 48, 30.0, VideoParams(codec=codec))
+    for k in range(3):
+        encoder.encode(rgb_to_i420(np.full((48, 64, 3), 40 * k, np.uint8)), k)
+    encoder.flush()
+    realtime = (os.SCHED_FIFO, os.SCHED_RR)
+    policies = {int(t): os.sched_getscheduler(int(t)) for t in os.listdir("/proc/self/task")}
+    assert not [t for t, policy in policies.items() if policy in realtime], policies
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+                           capture_output=True, text=True, check=True)
+    assert int(child.stdout) == os.SCHED_OTHER

@@ -614,19 +614,28 @@ def main(argv: list[str] | None = None) -> None:
         console.VERBOSE = True
     console.quiet_libraries(console.VERBOSE)  # before OpenCV, workers or Rerun start
     console.stop_on_signals()  # SIGTERM and SIGHUP stop a command as Ctrl-C does
-    commands = _commands()
-    if args and not args[0].startswith("-") and args[0] not in commands:
-        word = args[0]
-        close = difflib.get_close_matches(word, commands, n=1, cutoff=0.6)
-        if not Path(word).exists() and "/" not in word and (close or len(args) > 1 and not args[1].startswith("-")):
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            typer.secho(f"error: no such command '{word}'{hint}; commands: {', '.join(commands)}; "
-                        "`contact-viz SESSION` opens the viewer on a session directory", fg=typer.colors.RED, err=True)
-            raise SystemExit(2)
-        args.insert(0, "view")
     try:
+        commands = _commands()
+        if args and not args[0].startswith("-") and args[0] not in commands:
+            word = args[0]
+            close = difflib.get_close_matches(word, commands, n=1, cutoff=0.6)
+            if not Path(word).exists() and "/" not in word and (close or len(args) > 1 and not args[1].startswith("-")):
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                typer.secho(f"error: no such command '{word}'{hint}; commands: {', '.join(commands)}; "
+                            "`contact-viz SESSION` opens the viewer on a session directory", fg=typer.colors.RED,
+                            err=True)
+                raise SystemExit(2)
+            args.insert(0, "view")
         app(args=args, prog_name="contact-viz")
+    except KeyboardInterrupt as exc:  # a stop signal before typer took over
+        line, status = console.stop_line(exc)
+        typer.echo(line, err=True)
+        raise SystemExit(status) from None
     except SystemExit as exc:
+        stopped = console.unreported_stop()  # a signal while the command line was parsed: typer says nothing
+        if stopped is not None:
+            typer.echo(stopped[0], err=True)
+            raise SystemExit(stopped[1]) from None
         sinks = sys.modules.get("contact_viz.viz.sinks")
         if sinks is not None and sinks.exit_would_hang():  # a viewer that stopped taking data: leave now
             import os

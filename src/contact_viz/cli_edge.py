@@ -36,6 +36,7 @@ class EdgeGroup(TyperGroup):
         except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (console.stop_on_signals)
             line, status = console.stop_line(exc)
             _say(line)
+            console.stop_reported()
             raise typer.Exit(code=status) from None
         except Exception as exc:  # noqa: BLE001 - sorted by describe_error; bugs keep their traceback
             line = console.describe_error(exc)

@@ -87,8 +87,25 @@ class Stopped(KeyboardInterrupt):
         super().__init__(signal.Signals(signum).name)
 
 
+_STOP = {"signum": None, "reported": False}  # the last stop signal this process got, and whether its line was said
+
+
 def _raise_stopped(signum, frame) -> None:
+    _STOP["signum"], _STOP["reported"] = int(signum), False
     raise Stopped(signum)
+
+
+def stop_reported() -> None:
+    """The command's edge said the stop line (:func:`stop_line`) of the last stop signal."""
+    _STOP["reported"] = True
+
+
+def unreported_stop() -> tuple[str, int] | None:
+    """The stop line and exit status of a stop signal whose line was not said: one that came before or after
+    the command ran (while the command line was parsed), which typer ends with exit status 130 and no word."""
+    if _STOP["signum"] is None or _STOP["reported"]:
+        return None
+    return stop_line(Stopped(_STOP["signum"]))
 
 
 def stop_on_signals() -> None:

@@ -94,9 +94,15 @@ def view_task(job: SessionJob, model_path: str | None) -> dict:
                                 blueprint=default_blueprint(with_right=session.has_right,
                                                             with_model=model is not None,
                                                             with_depth_kind=session.depth_source == "sgbm"))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # bad frames are counted in the summary
-            summary = run_debugger(session, opened.rec, DebuggerOptions(patch_params=job.params), model=model)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # bad frames are counted in the summary
+                # a signal stops the whole batch (in this process it is the caller's), not only this recording
+                summary = run_debugger(session, opened.rec, DebuggerOptions(patch_params=job.params), model=model,
+                                       keep_partial=False)
+        except BaseException:
+            opened.close(keep=False)
+            raise
         opened.close()
         data = path.read_bytes()
     return {"rrd": data, "lines": summary.lines(), "seconds": time.perf_counter() - start}

@@ -58,6 +58,8 @@ def run_debugger(
     options: DebuggerOptions = DebuggerOptions(),
     model=None,
     progress: Callable[[int, int], None] | None = None,
+    *,
+    keep_partial: bool = True,
 ) -> RunSummary:
     """Log the frames of ``session`` selected by ``options`` to ``rec`` (an ``rr.RecordingStream``),
     streaming, and summarise.
@@ -68,7 +70,8 @@ def run_debugger(
     parameters must equal ``options.patch_params`` (ValueError otherwise). Without a model the
     recording says how to get one. ``progress(done, total)`` is called after each frame.
     A KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP) stops the run cleanly: what was logged is flushed
-    and the summary says so.
+    and the summary says so; without ``keep_partial`` (a step of a larger command, which must stop too) it
+    is raised again after the flush.
     """
     indices = select_frames(len(session), options.start, options.end, options.stride)
     started = time.perf_counter()
@@ -97,6 +100,8 @@ def run_debugger(
                 progress(logger.done, len(indices))
     except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP (contact_viz.console.Stopped)
         interrupted, stop_signal = True, getattr(exc, "signum", 2)
+        if not keep_partial:
+            raise
     finally:
         results.close()
         images.close()

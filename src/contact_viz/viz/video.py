@@ -190,6 +190,40 @@ def _open_failure(exc: Exception, encoder: str, printed: list[str], logs: list) 
     return "; ".join(reasons[:3])
 
 
+def _thread_policies() -> dict[int, int]:
+    """{thread id: scheduling policy} of this process's threads (Linux; {} elsewhere)."""
+    out = {}
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            out[int(tid)] = os.sched_getscheduler(int(tid))
+        except (OSError, ValueError):
+            pass
+    return out
+
+
+@contextmanager
+def _scheduling_kept() -> Iterator[None]:
+    """Opened as root, SVT-AV1 makes the calling thread and the threads it starts real-time (SCHED_FIFO, priority
+    99). Every process started from such a thread inherits it, and CPU-bound real-time processes starve all others
+    (two of them froze a `batch` run on a 2-core machine). Threads that became real-time meanwhile are put back to
+    the normal policy."""
+    realtime = (getattr(os, "SCHED_FIFO", -1), getattr(os, "SCHED_RR", -1))
+    before = _thread_policies()
+    try:
+        yield
+    finally:
+        for tid, policy in _thread_policies().items():
+            if policy in realtime and before.get(tid) not in realtime:
+                try:
+                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                except OSError:
+                    pass
+
+
 def rgb_to_i420(rgb: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 RGB -> (3H'/2, W') uint8 I420 (BT.601 limited range), H' x W' = :func:`even_size`.
 
@@ -275,7 +309,8 @@ class VideoEncoder:
         cc.color_trc = _SMPTE170M
         cc.color_range = _LIMITED_RANGE
         cc.options = {**options, "crf": str(params.crf)}
-        cc.open()
+        with _scheduling_kept():
+            cc.open()
         return cc
 
     def _samples(self, packets) -> list[EncodedSample]:
