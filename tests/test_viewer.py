@@ -32,6 +32,7 @@ from contact_viz.geometry.patch import (  # noqa: E402
     LAYER_BACKGROUND, LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE, compute_patch,
 )
 from contact_viz.geometry.pointcloud import (  # noqa: E402
+    FAR_POINT_RADIUS,
     CloudParams,
     backproject,
     decimated_intrinsics,
@@ -213,7 +214,9 @@ def test_every_entity_once_per_frame_with_the_right_archetype(default_run):
         rerun_log.ENTITY_CLOUD_FAR: "Points3D:positions",
         rerun_log.ENTITY_PATCH_TISSUE: "Points3D:positions",
         rerun_log.ENTITY_PATCH_TOOL: "Points3D:positions",
-        rerun_log.ENTITY_PATCH_GAP: "Arrows3D:vectors",
+        rerun_log.ENTITY_PATCH_GAP: "LineStrips3D:strips",
+        rerun_log.ENTITY_PATCH_GAP_LENGTH: "Points3D:labels",
+        rerun_log.ENTITY_LEFT_LABELS: "Points2D:labels",
         rerun_log.ENTITY_SERIES_DISTANCE: "Scalars:scalars",
         rerun_log.ENTITY_SERIES_SIGNAL: "Scalars:scalars",
         rerun_log.ENTITY_SERIES_INVALID_DEPTH: "Scalars:scalars",
@@ -262,11 +265,11 @@ def test_images_pass_through_and_layers_depth_patch_match_extract(jpeg_run, sess
     depth_layers = rec.values(rerun_log.ENTITY_DEPTH_LAYERS, "SegmentationImage:buffer")
     centers = rec.values(rerun_log.ENTITY_LEFT_PATCH, "Boxes2D:centers")
     halves = rec.values(rerun_log.ENTITY_LEFT_PATCH, "Boxes2D:half_sizes")
-    box_labels = rec.values(rerun_log.ENTITY_LEFT_PATCH, "Boxes2D:labels")
+    labels = rec.values(rerun_log.ENTITY_LEFT_LABELS, "Points2D:labels")
     distance = rec.scalars(rerun_log.ENTITY_SERIES_DISTANCE)
     signal = rec.scalars(rerun_log.ENTITY_SERIES_SIGNAL)
     tool_points = rec.values(rerun_log.ENTITY_PATCH_TOOL, "Points3D:positions")
-    gap = rec.values(rerun_log.ENTITY_PATCH_GAP, "Arrows3D:vectors")
+    gap = rec.values(rerun_log.ENTITY_PATCH_GAP, "LineStrips3D:strips")
     n_found = 0
     for index, (frame, patch) in expected.items():
         stem = session.stems[index]
@@ -286,11 +289,14 @@ def test_images_pass_through_and_layers_depth_patch_match_extract(jpeg_run, sess
             x0, y0, x1, y1 = patch.window_xyxy
             center, half = np.array(centers[index].as_py()[0]), np.array(halves[index].as_py()[0])
             np.testing.assert_allclose(np.concatenate([center - half, center + half]), [x0, y0, x1, y1], atol=1e-4)
-            assert box_labels[index].as_py() == [f"{1000 * patch.distance_m:.1f} mm"]
-            # the tool points' mean depth is the patch's tool depth; the gap's z is the distance
+            # its label: the distance, marked as the nearest instrument (the only one)
+            assert labels[index].as_py() == [f"{1000 * patch.distance_m:.1f} mm ●"]
+            # the tool points' mean depth is the patch's tool depth; the gap runs from it over the distance in z
             pts = np.array(tool_points[index].as_py())
             assert pts[:, 2].mean() == pytest.approx(patch.tool_depth_m, rel=1e-5)
-            assert gap[index].as_py()[0][2] == pytest.approx(patch.distance_m, rel=1e-5)
+            start, end = np.array(gap[index].as_py()[0])
+            assert start[2] == pytest.approx(patch.tool_depth_m, rel=1e-5)
+            assert end[2] - start[2] == pytest.approx(patch.distance_m, rel=1e-4)
     assert n_found >= N_FRAMES - 2  # the scene is built so that (nearly) every frame has a patch
 
 
@@ -393,17 +399,17 @@ def test_bad_frames_in_the_middle_are_logged_and_the_run_goes_on(session_dir, tm
     warns = [(f, text) for f, text, level in rec.texts() if level == "WARN"]
     assert any(f == 5 and "depth" in text and "000005.npy" in text for f, text in warns)
     assert any(f == 7 and "left image" in text and "000007.jpg" in text for f, text in warns)
-    # frame 5: images and patch cleared, gaps in the series; later frames are all there
+    # frame 5: depth and patch cleared, gaps in the series, its own images shown; later frames are all there
     assert 5 in rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "Clear:is_recursive")
     assert 5 not in rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer")
     assert math.isnan(rec.scalars(rerun_log.ENTITY_SERIES_DISTANCE)[5])
-    assert rec.scalars(rerun_log.diagnostic_entity("bad_frame")) == {5: 1.0}
+    assert rec.scalars(rerun_log.diagnostic_entity("bad_frame")) == {5: rerun_log.marker_height("bad_frame")}
     later = [i for i in range(6, N_FRAMES)]
     assert set(later) <= set(rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer"))
-    assert set(later) - {7} <= set(rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample"))
-    assert not {5, 7} & set(rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample"))
+    # every frame has a video sample: frame 5 its own image, frame 7 (unreadable) a grey one, never the frame before's
+    samples = rec.values(rerun_log.ENTITY_LEFT_IMAGE, "VideoStream:sample")
+    assert set(samples) == set(range(N_FRAMES))
     # an unreadable left image is only a display problem: frame 7 still has its patch
-    assert 7 in rec.frames(rerun_log.ENTITY_LEFT_IMAGE, "Clear:is_recursive")
     assert not math.isnan(rec.scalars(rerun_log.ENTITY_SERIES_DISTANCE)[7])
 
 
@@ -581,16 +587,17 @@ def test_cloud_full_density_near_the_patch_and_voxels_elsewhere():
     assert cloud.far_points_m.shape[0] < far.shape[0] / 2
     # point spacing: pixel footprint 0.1 / 300 m; far points are a voxel apart
     assert cloud.near_radius_m == pytest.approx(0.6 * 0.1 / 300)
-    assert cloud.far_radius_m == pytest.approx(0.0005)
+    assert cloud.far_radius_m == pytest.approx(FAR_POINT_RADIUS * 0.001)
     # no patch: no near part
     assert depth_cloud(depth, K, params=params).near_points_m.shape == (0, 3)
-    # every 2nd pixel near the patch (points twice as large, still touching); stride 0: no far part
+    # every 4th pixel near the patch by default (points four times as large, still touching); stride 0: no far part
     thin = depth_cloud(depth, K, center_xy=(50, 50), params=CloudParams(stride_px=0))
     assert thin.far_points_m.shape == (0, 3) and thin.far_colors.shape == (0, 3)
-    square = backproject(depth, K, box_xyxy=(10, 10, 91, 91))[0]  # the default 40 px half-side, clipped
-    np.testing.assert_array_equal(thin.near_points_m, square[(np.arange(81 * 81) // 81 % 2 == 0)
-                                                             & (np.arange(81 * 81) % 81 % 2 == 0)])
-    assert thin.near_radius_m == pytest.approx(2 * 0.6 * 0.1 / 300)
+    # (the default 40 px half-side, clipped, on the image's every-4th-pixel grid: X = (x - cx) Z / fx)
+    ys, xs = np.mgrid[12:91:4, 12:91:4]
+    want = np.stack([(xs - 50) * 0.1 / 300, (ys - 50) * 0.1 / 300, np.full(xs.shape, 0.1)], -1).reshape(-1, 3)
+    np.testing.assert_allclose(thin.near_points_m, want, atol=1e-7)
+    assert thin.near_radius_m == pytest.approx(4 * 0.6 * 0.1 / 300)
 
 
 def test_patch_geometry_reproduces_the_patch_numbers(session_dir):
@@ -766,7 +773,9 @@ def test_viewer_flags_what_check_flags_and_shows_the_evidence_at_the_image_size(
                               for f in range(a, b + 1)})
     assert set(range(9, 14)) <= set(evidence_frames)  # the drifted mask is caught
     blobs = rec.values(rerun_log.ENTITY_EVIDENCE_RESIDUAL, "EncodedImage:blob")
-    assert sorted(blobs) == evidence_frames
+    assert sorted(blobs) == list(range(24))  # every frame: the picture where a check fired, else an empty image
+    empty = {f for f, blob in blobs.items() if image_buffer(blob, (-1,), np.uint8).tobytes() == rerun_log.EMPTY_PNG}
+    assert sorted(set(range(24)) - empty) == evidence_frames
     picture = cv2.imdecode(image_buffer(blobs[evidence_frames[0]], (-1,), np.uint8), cv2.IMREAD_COLOR)
     assert picture.shape == (180, 320, 3)
     contour = rec.values(rerun_log.ENTITY_EVIDENCE_CONTOUR, "Points2D:positions")[evidence_frames[0]]

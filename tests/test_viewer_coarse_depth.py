@@ -1,5 +1,6 @@
-"""The viewer marks SGBM's coarse depth: the depth-kind layer (ENTITY_DEPTH_KIND) of a stereo-only session, read back
-from the .rrd it writes; absent for a session with depth files."""
+"""The viewer marks the kinds of depth: the depth-kind layer (ENTITY_DEPTH_KIND) of a stereo-only session (SGBM's
+fine match, its outline, the coarse pass, no depth), read back from the .rrd it writes; with depth files, the pixels
+without depth."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from contact_viz.geometry.stereo import SGBMParams  # noqa: E402
 from contact_viz.io.session import open_session  # noqa: E402
 from contact_viz.viz import rerun_log  # noqa: E402
 from contact_viz.viz.debugger import DebuggerOptions, run_debugger  # noqa: E402
-from contact_viz.viz.style import DEPTH_COARSE, DEPTH_FINE, DEPTH_KIND_STYLES, LAYER_STYLES  # noqa: E402
+from contact_viz.viz.style import (DEPTH_COARSE, DEPTH_FINE, DEPTH_FINE_EDGE, DEPTH_KIND_STYLES, DEPTH_NONE,  # noqa: E402
+                                   LAYER_STYLES)
 
 H, W = 96, 192  # image size, px
 N = 4  # frames
@@ -82,13 +84,14 @@ def test_stereo_session_marks_fine_and_coarse_depth_on_the_depth_grid(stereo_run
         assert frame.depth_fine is not None and frame.depth_fine.shape == (H, W)
         ids = image_buffer(layers[index], grid, np.uint8)  # same grid as the decimated depth image
         assert image_buffer(depth[index], grid, np.uint16).shape == ids.shape
-        np.testing.assert_array_equal(ids, np.where(frame.depth_fine[::STEP, ::STEP], DEPTH_FINE, DEPTH_COARSE))
-        assert set(np.unique(ids)) == {DEPTH_FINE, DEPTH_COARSE}
-        # the tool is fine depth; the far side of the image, away from it, is the coarse pass
+        np.testing.assert_array_equal(ids, expected_kinds(frame.depth_fine[::STEP, ::STEP],
+                                                          image_buffer(depth[index], grid, np.uint16)))
+        assert {DEPTH_FINE, DEPTH_COARSE, DEPTH_FINE_EDGE} <= set(np.unique(ids))
+        # the tool is fine depth (its edge in the fine region's outline); away from it, the coarse pass
         tool = np.zeros((H, W), bool)
         tool[:tool_rows(index), 90:120] = True
-        assert (ids[tool[::STEP, ::STEP]] == DEPTH_FINE).all()
-        assert (ids[:, :10 // STEP] == DEPTH_COARSE).all() and (ids[-2:, -(40 // STEP):] == DEPTH_COARSE).all()
+        assert np.isin(ids[tool[::STEP, ::STEP]], (DEPTH_FINE, DEPTH_FINE_EDGE, DEPTH_NONE)).all()
+        assert np.isin(ids[:, :10 // STEP], (DEPTH_COARSE, DEPTH_NONE)).all()
     # drawn over the depth image, under the layer overlay
     draw_order = rec.values(KIND, "SegmentationImage:draw_order")
     assert {v.as_py()[0] for v in draw_order.values()} == {-10.0}
@@ -96,11 +99,15 @@ def test_stereo_session_marks_fine_and_coarse_depth_on_the_depth_grid(stereo_run
     # its classes: its own AnnotationContext (static), found before the layer classes on world (the ids overlap)
     context = rec.static[(KIND, "AnnotationContext:context")].as_py()[0]
     info = {c["class_id"]: c["class_description"]["info"] for c in context}
-    assert set(info) == {1, 2} and (DEPTH_FINE, DEPTH_COARSE) == (1, 2)
-    assert "fine" in info[1]["label"] and "coarse" in info[2]["label"]
-    assert info[1]["color"] & 0xFF == 0 and info[2]["color"] & 0xFF > 0  # fine: transparent; coarse: a tint
-    assert info[2]["color"] & 0xFF < 255  # translucent: the depth under it still shows
-    assert [(s.class_id, s.name) for s in DEPTH_KIND_STYLES] == [(1, info[1]["label"]), (2, info[2]["label"])]
+    assert set(info) == {DEPTH_FINE, DEPTH_COARSE, DEPTH_NONE, DEPTH_FINE_EDGE}
+    assert "fine" in info[DEPTH_FINE]["label"] and "coarse" in info[DEPTH_COARSE]["label"]
+    assert info[DEPTH_FINE]["color"] & 0xFF == 0  # fine: left as it is
+    assert 0 < info[DEPTH_COARSE]["color"] & 0xFF < 255  # coarse: a translucent veil, the depth still shows under it
+    assert info[DEPTH_NONE]["color"] & 0xFF == 255 and info[DEPTH_FINE_EDGE]["color"] & 0xFF == 255  # opaque
+    assert len({info[k]["color"] for k in info}) == 4  # four kinds, four looks
+    assert [(s.class_id, s.name) for s in DEPTH_KIND_STYLES] == [(k, info[k]["label"]) for k in
+                                                                 (DEPTH_FINE, DEPTH_COARSE, DEPTH_NONE,
+                                                                  DEPTH_FINE_EDGE)]
     world = rec.static[(rerun_log.ENTITY_WORLD, "AnnotationContext:context")].as_py()[0]
     assert {c["class_id"] for c in world} == {s.class_id for s in LAYER_STYLES}  # unchanged
 
@@ -148,15 +155,45 @@ def test_depth_kind_layer_logs_classes_once_and_clears_only_after_a_shown_layer(
     assert rec.frames(KIND, "SegmentationImage:buffer") == [1, 2, 5]
     assert rec.frames(KIND, "Clear:is_recursive") == [3]
     ids = image_buffer(rec.values(KIND, "SegmentationImage:buffer")[1], (4, 5), np.uint8)
-    np.testing.assert_array_equal(ids, np.where(fine[::3, ::3], 1, 2))
+    np.testing.assert_array_equal(ids, expected_kinds(fine[::3, ::3], None))
     assert rerun_log.depth_kind_ids(None, 3) is None
     assert rerun_log.depth_kind_ids(fine, 3).dtype == np.uint8
+    # a worked example: a 3x4 fine block inside a 5x6 grid, one pixel without depth
+    block = np.zeros((5, 6), bool)
+    block[1:4, 1:5] = True
+    depth_u16 = np.ones((5, 6), np.uint16)
+    depth_u16[0, 0] = 0
+    F, C, N_, E = DEPTH_FINE, DEPTH_COARSE, DEPTH_NONE, DEPTH_FINE_EDGE
+    np.testing.assert_array_equal(rerun_log.depth_kind_ids(block, 1, depth_u16), [
+        [N_, C, C, C, C, C], [C, E, E, E, E, C], [C, E, F, F, E, C], [C, E, E, E, E, C], [C, C, C, C, C, C]])
+    # depth files: only the pixels without depth are marked
+    np.testing.assert_array_equal(rerun_log.depth_kind_ids(None, 1, depth_u16), np.where(depth_u16 == 0, N_, F))
 
 
-def test_depth_files_session_has_no_depth_kind_layer(tmp_path):
+def expected_kinds(fine: np.ndarray, depth_u16: np.ndarray | None) -> np.ndarray:
+    """The depth kinds, literally: fine, its pixels with a coarse 8-neighbour on the edge, coarse, none."""
+    h, w = fine.shape
+    out = np.where(fine, DEPTH_FINE, DEPTH_COARSE).astype(np.uint8)
+    for y in range(h):
+        for x in range(w):
+            near = fine[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2]
+            if fine[y, x] and not near.all():
+                out[y, x] = DEPTH_FINE_EDGE
+    if depth_u16 is not None:
+        out[depth_u16 == 0] = DEPTH_NONE
+    return out
+
+
+def test_a_depth_files_session_marks_only_the_pixels_without_depth(tmp_path):
     root = tmp_path / "sess"
-    write_session(root, n_frames=3)  # depth/ files: all of the depth is of one kind
+    write_session(root, n_frames=3)  # depth/ files with 2% holes: no fine or coarse, but pixels without depth
     session, summary, rec = view(root, tmp_path / "files.rrd", tmp_path / "cache", with_right=False)
     assert summary.frames == 3 and session.load_frame(0).depth_fine is None
-    assert rec.frames(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer") == [0, 1, 2]  # the depth pane is there
-    assert not [key for key in (*rec.rows, *rec.static) if key[0] == KIND]  # nothing at all for the depth kinds
+    height, width = session.image_size  # (test_viewer's session)
+    grid = (-(-height // STEP), -(-width // STEP))
+    depth = rec.values(rerun_log.ENTITY_DEPTH_IMAGE, "DepthImage:buffer")
+    for index, value in rec.values(KIND, "SegmentationImage:buffer").items():
+        ids = image_buffer(value, grid, np.uint8)
+        none = image_buffer(depth[index], grid, np.uint16) == 0
+        assert none.any() and set(np.unique(ids)) == {DEPTH_FINE, DEPTH_NONE}
+        np.testing.assert_array_equal(ids == DEPTH_NONE, none)

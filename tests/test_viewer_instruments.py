@@ -18,13 +18,14 @@ rr = pytest.importorskip("rerun")
 from test_viewer import (  # noqa: E402
     CY, H, N_FRAMES, TISSUE_M, W, Recording, image_buffer, tiny_model, write_session)
 
-from contact_viz.geometry.patch import LAYER_INTERIOR, LAYER_TOOL_EDGE  # noqa: E402
+from contact_viz.geometry.patch import LAYER_BAND, LAYER_INTERIOR, LAYER_RING, LAYER_TOOL_EDGE  # noqa: E402
 from contact_viz.io.session import open_session  # noqa: E402
 from contact_viz.params import PatchParams  # noqa: E402
 from contact_viz.pipeline.extract import frame_patches  # noqa: E402
 from contact_viz.viz import rerun_log  # noqa: E402
 from contact_viz.viz.debugger import DebuggerOptions, run_debugger  # noqa: E402
 from contact_viz.viz.entities import TOOL_ENTITIES, tool_entity  # noqa: E402
+from contact_viz.viz.instrument_log import CONTACT_MARK, label_colour  # noqa: E402
 from contact_viz.viz.style import LAYER_STYLES, PATCH_STYLES, SERIES_STYLES, instrument_style  # noqa: E402
 
 ABSENT = (4, 5)  # frames without instrument 2
@@ -137,10 +138,13 @@ def test_each_instrument_has_its_own_layers_where_it_is_present(two_run):
             assert signal[i] == pytest.approx(patch.signal, rel=1e-12)
             if patch.found:
                 n_boxes += 1
-                labels = rec.values(at(rerun_log.ENTITY_LEFT_PATCH), "Boxes2D:labels")[i].as_py()
-                assert labels[0].startswith(f"{tool}: {1000 * patch.distance_m:.1f} mm")
-                gap = rec.values(at(rerun_log.ENTITY_PATCH_GAP), "Arrows3D:vectors")[i].as_py()[0]
-                assert gap[2] == pytest.approx(patch.distance_m, rel=1e-5)
+                # its label, in its colour (a dark shade, readable on the viewer's light label plate)
+                labels = rec.values(rerun_log.ENTITY_LEFT_LABELS, "Points2D:labels")[i].as_py()
+                colours = rec.values(rerun_log.ENTITY_LEFT_LABELS, "Points2D:colors")[i].as_py()
+                mine = [t for t, c in zip(labels, colours) if c == packed(label_colour(tool))]
+                assert len(mine) == 1 and mine[0].startswith(f"{1000 * patch.distance_m:.1f} mm"), (i, labels)
+                start, end = rec.values(at(rerun_log.ENTITY_PATCH_GAP), "LineStrips3D:strips")[i].as_py()[0]
+                assert end[2] - start[2] == pytest.approx(patch.distance_m, rel=1e-4)
                 assert rec.values(at(rerun_log.ENTITY_PATCH_TOOL), "Points3D:positions")[i].as_py()
         assert n_boxes >= len(frames) - 2, tool
     # the two instruments' layers differ (each is its own patch, not the frame's nearest one)
@@ -164,38 +168,45 @@ def test_an_absent_instrument_is_cleared(two_run):
     assert rec.frames(rerun_log.ENTITY_LEFT_LAYERS, "Clear:is_recursive") == [BAD]
 
 
-def test_each_instrument_has_its_own_stable_colours(two_run):
+def test_each_instrument_has_one_colour_in_every_pane(two_run):
     _, _, rec = two_run
     one, two = instrument_style(1), instrument_style(2)
-    # instrument 1: today's single-instrument colours (the world's classes; no context of its own)
+    # instrument 1: the world's classes (no context of its own), its interior and edge in its colour
     world = context_colours(rec, rerun_log.ENTITY_WORLD)
     assert world == {s.class_id: packed(s.rgba) for s in LAYER_STYLES}
     assert (rerun_log.ENTITY_LEFT_LAYERS, "AnnotationContext:context") not in rec.static
-    # instrument 2: its own classes on its layer entities, the interior and edge in its colour
+    # instrument 2: its own classes on its layer entities, the interior and edge in its colour, ring and band alike
     for entity in (rerun_log.ENTITY_LEFT_LAYERS, rerun_log.ENTITY_DEPTH_LAYERS):
         own = context_colours(rec, tool_entity(entity, 2))
         assert own == {s.class_id: packed(s.rgba) for s in two.layers}
         assert own[LAYER_INTERIOR] != world[LAYER_INTERIOR] and own[LAYER_TOOL_EDGE] != world[LAYER_TOOL_EDGE]
-    # boxes, gap arrows and distance lines: one colour per instrument, the same on every frame
+        assert own[LAYER_RING] == world[LAYER_RING] and own[LAYER_BAND] == world[LAYER_BAND]
+    # the interior, box, gap, distance, signal and posterior of an instrument: one hue, its own
+    for style in (one, two):
+        interior = dict((s.class_id, s.rgba) for s in style.layers)[LAYER_INTERIOR]
+        assert interior[:3] == style.window[:3] == style.gap[:3] == style.line[:3] == style.signal[:3]
     for entity, component, colour_1, colour_2 in (
-            (rerun_log.ENTITY_LEFT_PATCH, "Boxes2D:colors", PATCH_STYLES["window"], two.window),
-            (rerun_log.ENTITY_PATCH_GAP, "Arrows3D:colors", PATCH_STYLES["gap"], two.gap)):
+            (rerun_log.ENTITY_LEFT_PATCH, "Boxes2D:colors", one.window, two.window),
+            (rerun_log.ENTITY_PATCH_GAP, "LineStrips3D:colors", one.gap, two.gap)):
         assert {tuple(v.as_py()) for v in rec.values(entity, component).values()} == {(packed(colour_1),)}
         assert {tuple(v.as_py()) for v in rec.values(tool_entity(entity, 2), component).values()} == {
             (packed(colour_2),)}
-    lines_1 = rec.static[(rerun_log.ENTITY_SERIES_DISTANCE, "SeriesLines:colors")].as_py()
-    lines_2 = rec.static[(tool_entity(rerun_log.ENTITY_SERIES_DISTANCE, 2), "SeriesLines:colors")].as_py()
-    assert lines_1 == [packed(SERIES_STYLES["distance_mm"].rgba)] and lines_2 == [packed(two.line)]
+    for entity in (rerun_log.ENTITY_SERIES_DISTANCE, rerun_log.ENTITY_SERIES_SIGNAL):
+        assert rec.static[(entity, "SeriesLines:colors")].as_py() == [packed(one.line)]
+        assert rec.static[(tool_entity(entity, 2), "SeriesLines:colors")].as_py() == [packed(two.line)]
     # the legend names the instruments
     assert rec.static[(rerun_log.ENTITY_SERIES_DISTANCE, "SeriesLines:names")].as_py() == ["instrument 1 (mm)"]
     assert rec.static[(tool_entity(rerun_log.ENTITY_SERIES_DISTANCE, 2), "SeriesLines:names")].as_py() == [
         "instrument 2 (mm)"]
-    # a fixed palette: every id its colour, always the same, instrument 1's today's
+    # a fixed palette: every id its colour, always the same; instrument 1's are the single-instrument styles
     assert one.window == PATCH_STYLES["window"] and one.layers == LAYER_STYLES and one.line == (
-        SERIES_STYLES["distance_mm"].rgba)
-    interiors = [dict((s.class_id, s.rgba) for s in instrument_style(k).layers)[LAYER_INTERIOR] for k in range(1, 7)]
-    assert len(set(interiors)) == 6 and len({instrument_style(k).window for k in range(1, 7)}) == 6
+        SERIES_STYLES["distance_mm"].rgba) == SERIES_STYLES["signal"].rgba == SERIES_STYLES["posterior"].rgba
+    interiors = [dict((s.class_id, s.rgba) for s in instrument_style(k).layers)[LAYER_INTERIOR] for k in range(1, 6)]
+    assert len(set(interiors)) == 5 and len({instrument_style(k).window for k in range(1, 6)}) == 5
     assert instrument_style(2) == two and instrument_style(7).window == two.window  # (5 colours, then again)
+    # no instrument in the ring's, band's or truth's colour
+    taken = {world[LAYER_RING] >> 8, world[LAYER_BAND] >> 8, packed(SERIES_STYLES["contact_truth"].rgba) >> 8}
+    assert not {packed(instrument_style(k).window) >> 8 for k in range(1, 6)} & taken
 
 
 def test_the_nearest_instrument_per_frame_and_in_the_summary(two_run):
@@ -210,14 +221,17 @@ def test_the_nearest_instrument_per_frame_and_in_the_summary(two_run):
             continue
         k = min(tools, key=lambda t: abs(tools[t].distance_m))
         nearest[i] = k
-        assert texts[i].startswith(f"nearest instrument: {k} ("), (i, texts[i])
+        name = f"instrument {k} ({instrument_style(k).colour_name})"
+        assert texts[i].startswith(f"**nearest: {name}, "), (i, texts[i])
         for tool, patch in tools.items():
-            assert f"instrument {tool}: {1000 * patch.distance_m:.1f} mm" in texts[i]
-        # the nearest instrument's box says so, the other's not
-        for tool in tools:
-            entity = rerun_log.ENTITY_LEFT_PATCH if tool == 1 else tool_entity(rerun_log.ENTITY_LEFT_PATCH, 2)
-            label = rec.values(entity, "Boxes2D:labels")[i].as_py()[0]
-            assert label.endswith("· nearest") == (tool == k), (i, tool, label)
+            assert f"instrument {tool} ({instrument_style(tool).colour_name}): {1000 * patch.distance_m:.1f} mm" in \
+                texts[i]
+        # the nearest instrument's label is marked, the other's not; each label in its instrument's colour
+        labels = rec.values(rerun_log.ENTITY_LEFT_LABELS, "Points2D:labels")[i].as_py()
+        colours = rec.values(rerun_log.ENTITY_LEFT_LABELS, "Points2D:colors")[i].as_py()
+        for label, colour in zip(labels, colours):
+            tool = next(t for t in tools if packed(label_colour(t)) == colour)
+            assert label.endswith(CONTACT_MARK) == (tool == k), (i, tool, label)
     assert {nearest[i] for i in (0, 1, 2, 3)} == {2} and {nearest[i] for i in (6, 7, 8, 10, 11)} == {1}
     counts = {k: list(nearest.values()).count(k) for k in (1, 2)}
     assert summary.nearest_frames == counts and summary.nearest_instrument == max(counts, key=counts.get)
@@ -254,9 +268,10 @@ def test_with_a_model_each_instrument_has_its_posterior_and_the_scene_the_max(tw
         top = max(want[i], key=lambda k: (each[k][i], -k))
         if each[top][i] >= threshold:
             contact_frames[top] = contact_frames.get(top, 0) + 1
-            assert texts[i].startswith(f"in contact: instrument {top} (P {each[top][i]:.2f}"), (i, texts[i])
+            name = f"instrument {top} ({instrument_style(top).colour_name})"
+            assert texts[i].startswith(f"**in contact: {name}, P {each[top][i]:.2f} >= threshold"), (i, texts[i])
         else:
-            assert texts[i].startswith(f"no instrument in contact (largest P: instrument {top},"), (i, texts[i])
+            assert texts[i].startswith(f"**no contact: largest P {each[top][i]:.2f} (instrument {top}"), (i, texts[i])
     assert len(set(np.round(each[1], 2))) > 2 and len(set(np.round(each[2], 2))) > 2  # the posteriors move
     assert contact_frames and summary.contact_frames == contact_frames
     assert any(t.startswith("in contact: instrument ") for t in summary.lines())
@@ -273,9 +288,11 @@ def test_one_selected_instrument_keeps_the_single_instrument_paths(two_dir, tmp_
     for i in range(N_FRAMES):
         if 2 in want[i]:
             np.testing.assert_array_equal(layers_at(rec, rerun_log.ENTITY_LEFT_LAYERS, i, (H, W)), want[i][2].layer_ids)
-            if want[i][2].found:  # labels as a single instrument's: the distance alone
-                assert rec.values(rerun_log.ENTITY_LEFT_PATCH, "Boxes2D:labels")[i].as_py() == [
-                    f"{1000 * want[i][2].distance_m:.1f} mm"]
+            if want[i][2].found:  # its label, in its colour: the distance, marked as the nearest (the only one)
+                assert rec.values(rerun_log.ENTITY_LEFT_LABELS, "Points2D:labels")[i].as_py() == [
+                    f"{1000 * want[i][2].distance_m:.1f} mm {CONTACT_MARK}"]
+                assert rec.values(rerun_log.ENTITY_LEFT_LABELS, "Points2D:colors")[i].as_py() == [
+                    packed(label_colour(2))]
     own = context_colours(rec, rerun_log.ENTITY_LEFT_LAYERS)
     assert own == {s.class_id: packed(s.rgba) for s in instrument_style(2).layers}
     assert rec.static[(rerun_log.ENTITY_SERIES_DISTANCE, "SeriesLines:names")].as_py() == [

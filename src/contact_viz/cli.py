@@ -341,10 +341,10 @@ def view(
     point_stride: Annotated[Optional[int], typer.Option(min=0, help="Point cloud: every n-th pixel away from the "
                             "patch (0 = none) [default: image width / 120, 16 at 1080p].")] = None,
     voxel_mm: Annotated[float, typer.Option(min=0, help="Point cloud: voxel size away from the patch, mm.")] = 4.0,
-    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: the RGB points within this of the "
+    near_radius_px: Annotated[int, typer.Option(min=0, help="Point cloud: the RGB points within this of each "
                               "patch centre, px.")] = 40,
-    near_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel near the patch "
-                           "(1 = all).")] = 2,
+    near_stride: Annotated[int, typer.Option(min=1, help="Point cloud: every n-th pixel near the patches "
+                           "(1 = all).")] = 4,
     grpc_port: Annotated[int, typer.Option(help="gRPC port for --serve/--spawn.")] = 9876,
     web_port: Annotated[int, typer.Option(help="Web viewer port for --serve.")] = 9090,
     hand_eye: Annotated[Optional[Path], typer.Option(help="4x4 camera_T_base (text or .npy, m): draw the "

@@ -23,7 +23,10 @@ calibration of one rectified frame and returns :class:`FrameMeasures`, the quant
   shares rest on a few pixels). ``inside_far_fraction`` is NaN where the rim's depth is mostly
   invalid (valid on less than ``RIM_MIN_VALID`` of it): its share would rest on a minority of the rim;
 * ``width_ratio``: physical shaft width (inscribed-disc diameter in px x depth of the shaft axis /
-  fx) over the instrument's diameter (depth scale error; wrong mask);
+  fx) over the instrument's diameter (depth scale error; wrong mask). Below 1 it is NaN where the
+  widest disc may not lie on the shaft: the disc is cut by the image border, or the mask fills more
+  than ``max_shaft_fill`` x the disc's width x its reach from the border (the jaws side by side, the
+  shaft out of view; the tip is narrower than the shaft);
 * ``residual_ratio``: photometric residual of the right image warped into the left view by the
   depth's disparity fx B / Z near the tool, over the residual at a disparity 15% off (the better
   of +- 15%): well below 1 when the depth explains the stereo pair, near or above 1 when not;
@@ -303,8 +306,11 @@ def _measure(area: int, touches: bool, mask: np.ndarray, step: int, depth_m, lef
         axis_depth = float(np.median(disc)) + diameter_m / 2  # the shaft's axis lies a radius behind its surface
         width_ratio = shaft_px * axis_depth / fx_px / diameter_m
         gy, gx = cy + y0, cx + x0
-        if min(gy, gx, height - 1 - gy, width - 1 - gx) <= radius + 1 and width_ratio < 1:
-            width_ratio = nan  # the widest disc is cut by the image border: a tool entering or leaving
+        if width_ratio < 1 and (min(gy, gx, height - 1 - gy, width - 1 - gx) <= radius + 1
+                                or _tip_only(m, (y0, y1, x0, x1), (height, width), near_others, shaft_px, params)):
+            # the widest disc is cut by the image border (a tool entering or leaving), or lies on the jaws with the
+            # shaft out of view: no shaft to measure, and the tip is narrower than the shaft
+            width_ratio = nan
 
     # holes on the tool and in the band around it
     region = dt_out <= 2.0 * shaft_px
@@ -396,6 +402,31 @@ def _measure(area: int, touches: bool, mask: np.ndarray, step: int, depth_m, lef
     return FrameMeasures(area, touches, extra_px, extra_xy, edge_support, inside_far, outside_tool, hole_fraction,
                          shaft_px * step, width_ratio, residual_ratio, residual_grey, digest, thumb, ev,
                          beside_valid_fraction=beside_valid, **where)
+
+
+def _tip_only(m: np.ndarray, box: tuple[int, int, int, int], shape: tuple[int, int], near_others: np.ndarray | None,
+              width_px: float, params: DiagnosticParams) -> bool:
+    """Whether the mask ``m`` (the window y0:y1, x0:x1 = ``box`` of an image of ``shape``) may show an instrument's
+    tip alone: its area exceeds max_shaft_fill x its widest disc's width ``width_px`` x its reach into the view (the
+    farthest a mask pixel lies from where the mask is cut: its pixels on the image border, or where it touches no
+    border those next to another instrument, ``near_others``). One shaft fills about its width x its reach; the
+    jaws side by side, each as wide as the widest disc on them, about twice that. A mask cut nowhere is not."""
+    y0, y1, x0, x1 = box
+    cut = np.zeros_like(m)
+    if y0 == 0:
+        cut[0] |= m[0]
+    if y1 == shape[0]:
+        cut[-1] |= m[-1]
+    if x0 == 0:
+        cut[:, 0] |= m[:, 0]
+    if x1 == shape[1]:
+        cut[:, -1] |= m[:, -1]
+    if not cut.any() and near_others is not None:
+        cut = m & near_others
+    if not cut.any():
+        return False
+    reach = float(cv2.distanceTransform((~cut).view(np.uint8), cv2.DIST_L2, 5)[m].max()) + 1.0  # px, the cut's own too
+    return float(np.count_nonzero(m)) > params.max_shaft_fill * width_px * reach
 
 
 EDGE_TEXTURE_MIN_PX = 20  # the tissue's texture is measured on at least this many pixels (else the fixed threshold)

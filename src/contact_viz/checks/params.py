@@ -83,6 +83,12 @@ class DiagnosticParams:
     # ---- scale and stereo ----
     # the instrument's shaft diameter (--tool-diameter-mm; da Vinci 8 mm, many others 5 mm), mm
     tool_diameter_mm: float = checked(8.0, gt=0)
+    # a mask whose area exceeds this x its widest disc's width x its reach from the image border is wider on average
+    # than that disc: parts side by side (the two jaws) with the shaft out of view, the disc on a jaw; tool_width's
+    # lower bound is not measured on it. Clean synthetic sessions, 320x180 to 1920x1080, where the disc reads
+    # narrower than the shaft and lies inside the image: 0.89-1.05 with the disc on the shaft, 1.33-1.86 on the jaws
+    # with the shaft out of view, ratio
+    max_shaft_fill: float = checked(1.2, gt=0)
     # physical shaft width / diameter above this (or below its inverse) fires, ratio
     max_width_ratio: float = checked(1.45, gt=1)
     # stereo residual at the depth's disparity / at a 15% different one above this fires, ratio

@@ -8,15 +8,20 @@ and the viewer's own depth cloud coincide.
 
 A depth value is valid when finite and > 0 (the session reader passes invalid depth on as stored: 0, NaN, inf or negative).
 
-The viewer's cloud (:func:`depth_cloud`) keeps every pixel in a square around the selected patch
-(where the gap is measured) and, elsewhere, every ``stride``-th pixel merged into voxels
-(:func:`voxel_downsample`: open3d's voxel_down_sample, in NumPy).
+The viewer's cloud (:func:`depth_cloud`) has a dense part and a far part. The dense part keeps every
+``near_stride_px``-th pixel in a square around each selected patch (where the gap is measured) and, given the
+instruments' mask, every ``tool_stride_px``-th pixel of every instrument and of the tissue within
+``tool_margin_m`` of it, each point labelled with its instrument's id (0 = tissue). The far part takes every
+``stride``-th pixel of the rest of the tissue and merges them into voxels (:func:`voxel_downsample`: open3d's
+voxel_down_sample, in NumPy).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from contact_viz.params import PatchParams, check_fields, checked
@@ -33,11 +38,16 @@ __all__ = [
     "depth_preview",
     "patch_geometry",
     "sample_colors",
+    "tool_region",
     "voxel_downsample",
 ]
 
 FAR_SAMPLES_ACROSS = 120  # CloudParams.stride_px=None: the far part samples this many columns across the image
-NEAR_POINT_RADIUS_PX = 0.6  # radius of a full-density point, in pixel footprints at its depth (touching discs)
+TOOL_SAMPLES_ACROSS = 120  # CloudParams.tool_stride_px=None: the instruments and their margins, columns across
+NEAR_POINT_RADIUS_PX = 0.6  # radius of a dense point, in strides of pixel footprints at its depth (touching discs)
+# the far points' radius, in their spacing: 0.5 made them touch, a wall of large dark spheres in the viewer's 3D view;
+# smaller, the far tissue reads as a sampled surface behind the dense part near the instruments
+FAR_POINT_RADIUS = 0.3
 PATCH_POINT_RADIUS_PX = 1.2  # radius of a patch point (drawn over the cloud), in pixel footprints at its depth
 UINT16_MAX = np.iinfo(np.uint16).max
 
@@ -46,11 +56,22 @@ UINT16_MAX = np.iinfo(np.uint16).max
 class CloudParams:
     """Density of the viewer's point cloud."""
 
-    # the near part: the square of half-side this around the patch centre, px (0 = none)
+    # the squares of the dense part: half-side around each patch centre, px (0 = none)
     near_radius_px: int = checked(40, ge=0)
-    # keep every near_stride-th pixel of the near part along rows and columns, px (1 = all). 2: a quarter of the
-    # points (27 kB a frame instead of 105 at the default radius) at 0.1 mm spacing at 10 cm, 1080p
-    near_stride_px: int = checked(2, ge=1)
+    # keep every near_stride-th pixel of the squares along rows and columns, px (1 = all). 4: with a square per
+    # instrument and the instruments' region, 55 kB a frame on the two-instrument synthetic sessions at 1080p (2: 101
+    # kB; the cloud around the patch alone, before the instruments' region: 43 kB), points 0.2 mm apart at 10 cm
+    near_stride_px: int = checked(4, ge=1)
+    # with the instruments' mask: the tissue within this distance of an instrument joins the dense part, m, measured
+    # in the image at the instrument's depth (the median over its pixels): the tissue beside it that the patch compares
+    # its depth with, at the same physical width at every resolution and camera distance (3 mm: 57 px at 6 cm,
+    # 1080p; 0 = the instruments only)
+    tool_margin_m: float = checked(0.003, ge=0)
+    # keep every tool_stride-th pixel of the instruments and their margins along rows and columns, px (None = the image
+    # width / TOOL_SAMPLES_ACROSS: 16 px at 1080p, 0.8 mm apart on an instrument at 6 cm). On the synthetic sessions
+    # (2 instruments; 640x360 to 1920x1080 alike) ~650 instrument and ~480 tissue points, 22-25 kB a frame with ids
+    # and radii (width / 160: 1870 points, 39 kB; width / 240 at 1080p: 4270 points, 90 kB)
+    tool_stride_px: int | None = checked(None, ge=1)
     # elsewhere keep every stride-th pixel along rows and columns, px (0 = no far part; None = the image width /
     # FAR_SAMPLES_ACROSS), then merge those points into voxels of voxel_m edge, m (0 = no merging). At 1080p the default
     # is 16 px / 4 mm: ~1500 points, 22 kB a frame, enough to show the tissue around the tool in 3D (6 px / 1.5 mm:
@@ -66,12 +87,15 @@ class CloudParams:
 class Cloud:
     """A coloured camera-frame point cloud in two parts of different density."""
 
-    near_points_m: np.ndarray  # (N, 3) float32, every valid pixel near the patch, m
+    near_points_m: np.ndarray  # (N, 3) float32, the dense part: the valid pixels on its strides, m
     near_colors: np.ndarray  # (N, 3) uint8 RGB
     far_points_m: np.ndarray  # (M, 3) float32, the rest: strided then voxel-merged, m
     far_colors: np.ndarray  # (M, 3) uint8 RGB
-    near_radius_m: float  # point radius that makes the near points touch (from their median depth), m
-    far_radius_m: float  # point radius that makes the far points touch, m
+    # one radius for every near point: that of the coarsest stride among them at their median depth, m (0 = none)
+    near_radius_m: float
+    far_radius_m: float  # point radius that makes the far points touch, m (see depth_cloud)
+    near_ids: np.ndarray  # (N,) uint16 object id of the instrument at each near point, 0 = tissue (or no mask)
+    near_radii_m: np.ndarray  # (N,) float32 radius of each near point: touching its neighbours at its depth, m
 
     @property
     def n_points(self) -> int:
@@ -232,41 +256,196 @@ def near_box(center_xy: tuple[int, int] | None, radius_px: int, image_size: tupl
     return _clip_box((cx - radius_px, cy - radius_px, cx + radius_px + 1, cy + radius_px + 1), width, height)
 
 
+def _in_boxes(rows: np.ndarray, cols: np.ndarray, boxes: Sequence[tuple[int, int, int, int]]) -> np.ndarray:
+    """(len(rows), len(cols)) bool: grid pixel (rows[i], cols[j]) lies in one of the half-open ``boxes``."""
+    inside = np.zeros((rows.shape[0], cols.shape[0]), dtype=bool)
+    for x0, y0, x1, y1 in boxes:
+        inside |= ((rows >= y0) & (rows < y1))[:, None] & ((cols >= x0) & (cols < x1))[None, :]
+    return inside
+
+
+def _grid(depth_m: np.ndarray, stride: int, box: tuple[int, int, int, int]):
+    """Rows, columns, depth and validity of the pixels on the ``stride`` grid (multiples of it) within ``box``."""
+    x0, y0, x1, y1 = box
+    gy0, gx0 = -(-y0 // stride) * stride, -(-x0 // stride) * stride  # first multiples at or after the start
+    sub = depth_m[gy0:y1:stride, gx0:x1:stride]
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(sub) & (sub > 0)
+    return np.arange(gy0, y1, stride), np.arange(gx0, x1, stride), sub, valid
+
+
+def _grid_points(K: np.ndarray, rows: np.ndarray, cols: np.ndarray, sub: np.ndarray, keep: np.ndarray):
+    """Camera-frame points (N, 3) float32 and yx (N, 2) int64 of the grid pixels where ``keep``, row-major."""
+    ry, rx = np.nonzero(keep)
+    ys, xs = rows[ry], cols[rx]
+    points = camera_rays(K, xs, ys) * sub[ry, rx].astype(np.float64)[:, None]
+    return points.astype(np.float32), np.stack([ys, xs], axis=1).astype(np.int64)
+
+
+def _check_tool_ids(tool_ids: np.ndarray | None, image_size: tuple[int, int]) -> np.ndarray | None:
+    if tool_ids is None:
+        return None
+    if not isinstance(tool_ids, np.ndarray) or tool_ids.shape != tuple(image_size) or tool_ids.dtype.kind not in "ui":
+        raise ValueError(
+            f"tool_ids must be an integer array of the depth map's shape {tuple(image_size)} (object ids, 0 = "
+            f"background), got {getattr(tool_ids, 'dtype', type(tool_ids))} with shape "
+            f"{getattr(tool_ids, 'shape', None)}"
+        )
+    return tool_ids
+
+
+def _as_ids(values: np.ndarray) -> np.ndarray:
+    """Object ids as uint16; ValueError for ids outside 0..65535."""
+    if values.size and values.dtype != np.uint16 and (int(values.min()) < 0 or int(values.max()) > UINT16_MAX):
+        raise ValueError(
+            f"tool_ids must be object ids in 0..{UINT16_MAX}, got {int(values.min())}..{int(values.max())}"
+        )
+    return values.astype(np.uint16)
+
+
+def tool_region(
+    tool_ids: np.ndarray, depth_m: np.ndarray, focal_px: float, stride: int, margin_m: float
+) -> np.ndarray:
+    """The instruments and their margins on the ``stride`` grid: (ceil(H / stride), ceil(W / stride)) bool.
+
+    Grid cell (i, j) is pixel (stride i, stride j). A cell is in the region when an instrument is there
+    (``tool_ids`` != 0) or when it lies within ``margin_m`` of a cell of an instrument, measured in the image
+    (Euclidean, px) and converted at that instrument's depth: ``margin_m * focal_px / Z``, Z the median valid
+    depth of its cells (of every valid cell when it has none).
+    """
+    grid = tool_ids[::stride, ::stride]
+    region = grid != 0
+    if margin_m <= 0 or not region.any():
+        return region
+    depth = depth_m[::stride, ::stride]
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        return region
+    fallback_z = None
+    for tool in np.unique(grid[region]):
+        cells = grid == tool
+        z = depth[cells & valid]
+        if z.size:
+            tool_z = float(np.median(z))
+        else:
+            fallback_z = float(np.median(depth[valid])) if fallback_z is None else fallback_z
+            tool_z = fallback_z
+        reach = margin_m * focal_px / tool_z / stride  # the margin, in cells
+        # the cells of this instrument's bounding box widened by its margin: the distance transform's window
+        ri, rj = np.nonzero(cells)
+        pad = int(np.ceil(reach)) + 1
+        i0, i1 = max(int(ri.min()) - pad, 0), min(int(ri.max()) + pad + 1, grid.shape[0])
+        j0, j1 = max(int(rj.min()) - pad, 0), min(int(rj.max()) + pad + 1, grid.shape[1])
+        far_from_tool = (~cells[i0:i1, j0:j1]).astype(np.uint8)
+        cells_away = cv2.distanceTransform(far_from_tool, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # exact Euclidean
+        region[i0:i1, j0:j1] |= cells_away <= reach
+    return region
+
+
 def depth_cloud(
     depth_m: np.ndarray,
     K: np.ndarray,
     rgb: np.ndarray | None = None,
     *,
     center_xy: tuple[int, int] | None = None,
+    centers_xy: Sequence[tuple[int, int] | None] = (),
+    tool_ids: np.ndarray | None = None,
     params: CloudParams = CloudParams(),
 ) -> Cloud:
     """The viewer's coloured cloud of one depth map.
 
-    The valid pixels within ``params.near_radius_px`` (square) of ``center_xy`` (the selected
-    patch; None = no near part) are kept every ``params.near_stride_px`` px; the other valid pixels
-    are taken every ``params.stride_px`` px (0 = none, None = width / FAR_SAMPLES_ACROSS) and merged into ``params.voxel_m`` voxels. Colours come from ``rgb``
-    (full or reduced size, see :func:`sample_colors`; None = grey).
+    The dense part (``near_*``):
+
+    - the valid pixels within ``params.near_radius_px`` (square) of ``center_xy`` and of each of
+      ``centers_xy`` (the selected patches; None = no square), every ``params.near_stride_px`` px;
+    - with ``tool_ids`` ((H, W) integer object ids, 0 = background; every id an instrument): outside the
+      squares, the valid pixels of the :func:`tool_region` (every instrument and the tissue within
+      ``params.tool_margin_m`` of it) every ``params.tool_stride_px`` px (None = width / TOOL_SAMPLES_ACROSS).
+
+    The squares' points come first, then the tool region's, each row-major. Each near point carries the id of
+    the instrument at its pixel (``near_ids``, 0 = tissue; all 0 without ``tool_ids``) and the radius that
+    makes it touch its neighbours on its stride at its depth (``near_radii_m``: NEAR_POINT_RADIUS_PX x stride
+    x Z / focal, with focal = sqrt(fx fy)).
+
+    The far part: the other valid pixels every ``params.stride_px`` px (0 = none, None = width /
+    FAR_SAMPLES_ACROSS) merged into ``params.voxel_m`` voxels. With ``tool_ids`` it holds tissue only: a far
+    pixel on an instrument, or whose nearest tool-grid cell is in the tool region, is left out, so no voxel
+    mixes an instrument's depth with the tissue's. ``far_radius_m`` is half the far points' spacing: the larger
+    of the voxel edge and the stride's pixel footprint at their median depth.
+
+    Colours come from ``rgb`` (full or reduced size, see :func:`sample_colors`; None = grey).
     """
     _check_depth(depth_m)
     K = _check_K(K)
-    box = near_box(center_xy, params.near_radius_px, depth_m.shape)
-    none = np.zeros((0, 3), np.float32), np.zeros((0, 2), np.int64)
-    near_points, near_yx = (backproject(depth_m, K, stride=params.near_stride_px, box_xyxy=box) if box is not None
-                            else none)
-    stride = params.stride_px if params.stride_px is not None else max(1, depth_m.shape[1] // FAR_SAMPLES_ACROSS)
-    far_points, far_yx = backproject(depth_m, K, stride=stride, exclude_xyxy=box) if stride else none
-    far_points, far_colors = voxel_downsample(far_points, sample_colors(rgb, far_yx, depth_m.shape), params.voxel_m)
+    ids = _check_tool_ids(tool_ids, depth_m.shape)
+    height, width = depth_m.shape
     focal_px = float(np.sqrt(K[0, 0] * K[1, 1]))
+    boxes = [box for box in (near_box(c, params.near_radius_px, depth_m.shape) for c in (center_xy, *centers_xy))
+             if box is not None]
+    none = np.zeros((0, 3), np.float32), np.zeros((0, 2), np.int64)
+
+    # the squares, row-major over the box around them all
+    near_points, near_yx = none
+    if boxes:
+        x0s, y0s, x1s, y1s = zip(*boxes)
+        around = (min(x0s), min(y0s), max(x1s), max(y1s))
+        rows, cols, sub, keep = _grid(depth_m, params.near_stride_px, around)
+        if len(boxes) > 1:
+            keep &= _in_boxes(rows, cols, boxes)
+        near_points, near_yx = _grid_points(K, rows, cols, sub, keep)
+    near_strides = [(near_points.shape[0], params.near_stride_px)]
+
+    # the instruments and their margins, outside the squares
+    region = None
+    if ids is not None:
+        tool_stride = (params.tool_stride_px if params.tool_stride_px is not None
+                       else max(1, width // TOOL_SAMPLES_ACROSS))
+        region = tool_region(ids, depth_m, focal_px, tool_stride, params.tool_margin_m)
+        rows, cols, sub, keep = _grid(depth_m, tool_stride, (0, 0, width, height))
+        keep &= region
+        if boxes:
+            keep &= ~_in_boxes(rows, cols, boxes)
+        tool_points, tool_yx = _grid_points(K, rows, cols, sub, keep)
+        near_points = np.concatenate([near_points, tool_points])
+        near_yx = np.concatenate([near_yx, tool_yx])
+        near_strides.append((tool_points.shape[0], tool_stride))
+    near_ids = (_as_ids(ids[near_yx[:, 0], near_yx[:, 1]]) if ids is not None
+                else np.zeros(near_points.shape[0], np.uint16))
+
+    # the far part
+    stride = params.stride_px if params.stride_px is not None else max(1, width // FAR_SAMPLES_ACROSS)
+    far_points, far_yx = none
+    if stride:
+        rows, cols, sub, keep = _grid(depth_m, stride, (0, 0, width, height))
+        if boxes:
+            keep &= ~_in_boxes(rows, cols, boxes)
+        if ids is not None:
+            keep &= ids[::stride, ::stride] == 0
+            tool_stride = near_strides[-1][1]
+            cell_rows = np.minimum((rows + tool_stride // 2) // tool_stride, region.shape[0] - 1)
+            cell_cols = np.minimum((cols + tool_stride // 2) // tool_stride, region.shape[1] - 1)
+            keep &= ~region[np.ix_(cell_rows, cell_cols)]
+        far_points, far_yx = _grid_points(K, rows, cols, sub, keep)
+    far_points, far_colors = voxel_downsample(far_points, sample_colors(rgb, far_yx, depth_m.shape), params.voxel_m)
+
+    point_strides = np.repeat([s for _, s in near_strides], [n for n, _ in near_strides])
+    near_radii = NEAR_POINT_RADIUS_PX * point_strides * near_points[:, 2].astype(np.float64) / focal_px
+    coarsest = max((s for n, s in near_strides if n), default=params.near_stride_px)
     near_depth = float(np.median(near_points[:, 2])) if near_points.shape[0] else 0.0
     far_depth = float(np.median(far_points[:, 2])) if far_points.shape[0] else 0.0
+    # voxel-merged points lie 0.9-1.0 voxel edge apart at their density (sqrt(surface area / points), measured on the
+    # synthetic sessions at 3-4 mm voxels), so half the voxel edge makes them just touch
     far_spacing_m = max(params.voxel_m, stride * far_depth / focal_px)
     return Cloud(
         near_points_m=near_points,
         near_colors=sample_colors(rgb, near_yx, depth_m.shape),
         far_points_m=far_points,
         far_colors=far_colors,
-        near_radius_m=NEAR_POINT_RADIUS_PX * params.near_stride_px * near_depth / focal_px,
-        far_radius_m=0.5 * far_spacing_m,
+        near_radius_m=NEAR_POINT_RADIUS_PX * coarsest * near_depth / focal_px,
+        far_radius_m=FAR_POINT_RADIUS * far_spacing_m,
+        near_ids=near_ids,
+        near_radii_m=near_radii.astype(np.float32),
     )
 
 

@@ -92,8 +92,7 @@ def view_task(job: SessionJob, model_path: str | None) -> dict:
         path = Path(tmp) / "view.rrd"
         opened = open_recording(save=path, recording_id=f"contact-viz-batch-{job.name}",
                                 blueprint=default_blueprint(with_right=session.has_right,
-                                                            with_model=model is not None,
-                                                            with_depth_kind=session.depth_source == "sgbm"))
+                                                            with_model=model is not None))
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # bad frames are counted in the summary

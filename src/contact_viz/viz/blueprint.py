@@ -26,11 +26,18 @@ from contact_viz.viz.entities import (
     ENTITY_WORLD,
     TIMELINE_FRAME,
 )
-from contact_viz.viz.style import DEPTH_KIND_STYLES, LAYER_STYLES, PATCH_COLOUR_NAME
+from contact_viz.viz.style import LAYER_STYLES
 
-__all__ = ["SCORE_CLIP", "default_blueprint", "depth_kind_legend", "layer_legend"]
+__all__ = ["DEPTH_LEGEND", "DIAGNOSTICS_RANGE", "DISTANCE_RANGE", "MARKER_LANE", "SCORE_CLIP", "SIGNAL_RANGE", "default_blueprint",
+           "layer_legend"]
 
 SCORE_CLIP = 3.0  # diagnostic scores (value / threshold) are drawn clipped at this, ratio
+MARKER_LANE = 0.15  # the markers of the k-th check sit at SCORE_CLIP + (k + 1) x this, above every score line, -
+DIAGNOSTICS_RANGE = (-0.05, SCORE_CLIP + 18 * MARKER_LANE)  # the checks plot's y range (lines, then marker lanes)
+SIGNAL_RANGE = (0.8, 4.2)  # the signal plot's y range: 160 mm to the cap at 0.1 mm (4), -log10 m
+# the distance plot's y range: contact to a 40 mm hover. The viewer labels its y axis only where 10 mm steps are
+# 20 px apart or more (at 1280x720 a range of 60 mm left only "0"); farther distances leave the top, mm
+DISTANCE_RANGE = (-3.0, 40.0)
 
 # Default 3D camera of the blueprint, in the world (= left camera) frame, RDF, m: above, to the left of and
 # slightly behind the stereo camera, looking at a point on the optical axis at a typical endoscopic working
@@ -43,54 +50,46 @@ EYE_UP = (0.0, -1.0, 0.0)  # up direction of the eye (-y in RDF)
 
 
 def layer_legend() -> str:
-    """The drawn layer classes in words ("blue: tool interior · ..."), for a view title.
+    """The layer classes and the patch in words, for every instrument at once ("fill: the instrument's colour ·
+    yellow: excluded ring · ..."): Rerun shows no legend for a SegmentationImage (a class's name appears only on
+    hover), so the contact pane carries it, built from the same styles as the AnnotationContext."""
+    ring_and_band = [f"{s.colour_name}: {s.name}" for s in LAYER_STYLES[3:] if s.rgba[3] > 0]
+    return " · ".join(["tool interior: the instrument's colour, edge lighter", *ring_and_band,
+                       "box and label: its patch"])
 
-    Rerun shows no legend for a SegmentationImage (a class's name appears only on hover), so the
-    left image's title carries it, built from the same styles as the AnnotationContext.
-    """
-    return " · ".join(f"{s.colour_name}: {s.name}" for s in LAYER_STYLES if s.rgba[3] > 0)
 
-
-def depth_kind_legend() -> str:
-    """The drawn depth kinds in words ("purple tint: coarse depth"), for the depth view's title (the full
-    names, with what the patch reads, show on hover)."""
-    return " · ".join(f"{s.colour_name}: {s.name.split(' (')[0]}" for s in DEPTH_KIND_STYLES if s.rgba[3] > 0)
+DEPTH_LEGEND = "depth: red = none; SGBM's fine match inside the cyan line, its coarse pass dimmed"
 
 
 def default_blueprint(*, with_right: bool = True, with_model: bool = True,
-                      with_kinematics: bool = False, with_depth_kind: bool = True,
-                      with_lag: bool = False) -> rrb.Blueprint:
-    """The layout sent with every recording: images over the 3D scene on the left, stacked time series on the right.
+                      with_kinematics: bool = False, with_lag: bool = False) -> rrb.Blueprint:
+    """The layout sent with every recording: images over the 3D scene and the contact pane on the left, stacked time
+    series on the right. Readable in a 1280x720 window: short titles, one colour per instrument everywhere.
 
-    Left column, top: the left image with the layer overlay and the patch box (large; its title
-    names the layer colours), and beside it the right image over the depth image with the same
-    overlay (each a quarter of the left image's area, so the three images fill their panes with
-    little letterboxing); every instrument's layers and box are drawn, each in its own colours
-    (contact_viz.viz.style.instrument_style). Below: the 3D scene (RGB cloud, patch points, gap
-    arrows, camera frustums; the depth image's own back-projection is in the scene but hidden until
-    toggled on), seen from the side (EYE_*). Where SGBM depth was computed in two parts, the depth
-    image's coarse part is tinted (:class:`DepthKindLayer`; the depth view's title names the tint unless ``with_depth_kind``
-    is False). Right column: distance, signal, force, contact (truth / posterior / threshold
-    / prediction) and diagnostics, all on the global ``frame`` axis, the text log and the instrument in
-    contact (ENTITY_CONTACT) in tabs beside the diagnostics. The distance, signal and contact plots show
-    every instrument's series (children of their origin: entities.tool_entity), the contact plot the
-    scene's posterior with each instrument's own as a thin line in its colour. The plots' legends (which
-    name the instruments) sit in a corner that the approach phase mostly leaves free. ``with_lag``
-    (--follow): a tab with the lag of each frame (files complete -> logged, ms).
+    Left column, top: the left image with every instrument's layers, patch box and label (large), and beside it
+    the right image over the depth image with the same layers (each a quarter of the left image's area, so the
+    three images fill their panes with little letterboxing). Where SGBM depth was computed in two parts, the
+    depth image's pixels without depth are red and, with SGBM depth, the coarse part is dimmed and the fine region
+    outlined in cyan (rerun_log.DepthKindLayer; the contact pane names the colours). Below: the 3D scene (RGB cloud, patch points, gap segments, camera
+    frustums; the depth image's own back-projection is in the scene but hidden until toggled on), seen from the
+    side (EYE_*), and beside it the contact pane (ENTITY_CONTACT: which instrument is in contact, each one's
+    distance and posterior, and the legend of the colours). Right column, on the global ``frame`` axis:
+    distance, signal (its whole range, the cap at 4 included), force, contact (truth, posterior, threshold,
+    prediction; each instrument's posterior in its colour) and, in tabs, the diagnostics (each check's score and
+    markers, with a legend), the text log, and with ``with_kinematics`` the tool-tip error, with ``with_lag``
+    (--follow) the lag of each frame (files complete -> logged, ms).
     """
     linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
-    left = rrb.Spatial2DView(name=f"left · {layer_legend()}", origin=ENTITY_LEFT_CAMERA)
-    depth_name = f"depth + layers · {PATCH_COLOUR_NAME} box: patch"
-    if with_depth_kind:
-        depth_name += f" · {depth_kind_legend()}"
-    # (its contents, everything under the depth camera, take the depth kinds of ENTITY_DEPTH_KIND too)
-    depth = rrb.Spatial2DView(name=depth_name, origin=ENTITY_DEPTH_CAMERA)
+    left = rrb.Spatial2DView(name="left image", origin=ENTITY_LEFT_CAMERA)
+    # (a quarter of the window wide: its colours are named in the contact pane)
+    depth = rrb.Spatial2DView(name="depth", origin=ENTITY_DEPTH_CAMERA)
     scene = rrb.Spatial3DView(
-        name="3D: cloud, patch points, gap",
+        name="3D: cloud, patch, gap",
         origin=ENTITY_WORLD,
         # (/**: every instrument's layers and boxes too, under <entity>/tools/<id>)
         contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}/**", f"- {ENTITY_LEFT_PATCH}/**",
-                  f"- {ENTITY_DEPTH_LAYERS}/**", f"- {ENTITY_DEPTH_PATCH}/**", f"- {ENTITY_DEPTH_KIND}"],
+                  f"- {ENTITY_DEPTH_LAYERS}/**", f"- {ENTITY_DEPTH_PATCH}/**", f"- {ENTITY_DEPTH_KIND}",
+                  f"- {ENTITY_LEFT_CAMERA}/labels/**"],
         # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
         overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
         line_grid=rrb.LineGrid3D(visible=False),
@@ -101,30 +100,28 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
         images = rrb.Horizontal(left, rrb.Vertical(right, depth), column_shares=[2, 1])
     else:
         images = rrb.Horizontal(left, depth, column_shares=[1, 1])
-    contact_name = ("contact (0/1): truth, HMM posterior, threshold, prediction · thin: each instrument's posterior"
-                    if with_model else "contact (0/1): ground truth")
-    diagnostics_top = SCORE_CLIP + 0.1
+    contact = rrb.TextDocumentView(name="contact", origin=ENTITY_CONTACT)
+    # (no legend: a short plot shows the first three entries of its legend only, and the truth came last)
+    contact_name = "contact · yellow: truth · band: predicted · P per instrument" if with_model else \
+        "contact · yellow: ground truth"
     series = [
         # the legends name the instruments (a session of one has a single entry, "distance (mm)")
-        rrb.TimeSeriesView(name="distance (mm)", origin=ENTITY_SERIES_DISTANCE, axis_x=linked,
+        rrb.TimeSeriesView(name=f"distance (mm; the axis ends at {DISTANCE_RANGE[1]:g})", origin=ENTITY_SERIES_DISTANCE,
+                           axis_x=linked, axis_y=rrb.ScalarAxis(range=DISTANCE_RANGE),
                            plot_legend=rrb.PlotLegend(rrb.components.Corner2D.RightTop)),
-        rrb.TimeSeriesView(name="signal -log10 max(|d|, eps), d in m", origin=ENTITY_SERIES_SIGNAL, axis_x=linked,
+        rrb.TimeSeriesView(name="signal -log10 max(|d|, 1e-4 m)", origin=ENTITY_SERIES_SIGNAL, axis_x=linked,
+                           axis_y=rrb.ScalarAxis(range=SIGNAL_RANGE),
                            plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
-        rrb.TimeSeriesView(name="force (N)", origin=ENTITY_SERIES_FORCE, axis_x=linked,
-                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
+        # (the magnitude only: a short plot shows three legend entries; the components are in the recording)
+        rrb.TimeSeriesView(name="force |F| (N)", origin=ENTITY_SERIES_FORCE, axis_x=linked,
+                           contents=[f"+ {ENTITY_SERIES_FORCE}/magnitude"], plot_legend=rrb.PlotLegend(visible=False)),
         rrb.TimeSeriesView(name=contact_name, origin=ENTITY_SERIES_CONTACT, axis_x=linked,
-                           axis_y=rrb.ScalarAxis(range=(-0.05, 1.05)),
-                           plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
-        # the log shares a tab with the diagnostics plot: a sixth row would leave the plots too low for
-        # the viewer to label their y axes
+                           axis_y=rrb.ScalarAxis(range=(-0.05, 1.05)), plot_legend=rrb.PlotLegend(visible=False)),
         rrb.Tabs(
-            rrb.TimeSeriesView(name="diagnostics: score = measured / threshold (> 1 fires; markers), invalid depth",
-                               origin=ENTITY_SERIES_DIAGNOSTICS, axis_x=linked,
-                               axis_y=rrb.ScalarAxis(range=(-0.05, diagnostics_top)),
-                               # 2 series per check: a legend would cover the plot; hover names them, `log` says why
-                               plot_legend=rrb.PlotLegend(visible=False)),
+            rrb.TimeSeriesView(name="checks: score (> 1 fires), markers where fired", origin=ENTITY_SERIES_DIAGNOSTICS,
+                               axis_x=linked, axis_y=rrb.ScalarAxis(range=DIAGNOSTICS_RANGE),
+                               plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
             rrb.TextLogView(name="log", origin=ENTITY_LOG),
-            rrb.TextDocumentView(name="instrument in contact", origin=ENTITY_CONTACT),
             *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=ENTITY_SERIES_TIP,
                                   axis_x=linked)] if with_kinematics else []),
             *([rrb.TimeSeriesView(name="lag: files complete -> logged (ms)", origin=ENTITY_SERIES_LAG,
@@ -134,11 +131,12 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(images, scene, row_shares=[0.47, 0.53]),
-            rrb.Vertical(*series, row_shares=[1.0, 0.9, 1.2, 1.1, 1.0]),
+            rrb.Vertical(images, rrb.Horizontal(scene, contact, column_shares=[3, 1]), row_shares=[0.5, 0.5]),
+            rrb.Vertical(*series, row_shares=[1.2, 0.9, 0.8, 1.1, 1.2]),
             column_shares=[3, 2],
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="collapsed", timeline=TIMELINE_FRAME),
+        # a finished session opens paused at its first frame (a followed one follows its newest frame)
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE_FRAME, play_state=None if with_lag else "paused"),
     )

@@ -6,7 +6,9 @@ Entity tree (the README lists it too)::
     world/camera/left              Pinhole from K.txt (static)
     world/camera/left/image        left image: VideoStream (AV1/H.264, --images video), EncodedImage (JPEG) or Image (raw)
     world/camera/left/layers       SegmentationImage of the layer classes (full resolution)
-    world/camera/left/patch        Boxes2D: the N2 window of the selected patch, labelled with its distance
+    world/camera/left/patch        Boxes2D: the N2 window of the selected patch, in the instrument's colour
+    world/camera/left/labels       Points2D: every instrument's label ("2.0 mm", "● " on the one in contact), in its
+                                   colour, above its patch box and apart from the others
     world/camera/right             Transform3D (baseline along +x) + Pinhole (static)
     world/camera/right/image       right image
     world/camera/depth             Pinhole of the decimated depth grid (K / depth step, static)
@@ -19,7 +21,9 @@ Entity tree (the README lists it too)::
     world/cloud/far                Points3D: RGB cloud elsewhere, every 16th pixel merged into 4 mm voxels
     world/patch/tissue             Points3D: band pixels whose distances gave the patch distance
     world/patch/tool               Points3D: interior pixels whose depths gave the tool depth
-    world/patch/gap                Arrows3D: tool depth -> tissue along the patch centre's ray
+    world/patch/gap                LineStrips3D + Points3D: the gap, tool depth -> tissue along the patch centre's
+                                   ray, and its two ends
+    world/patch/gap_length         Points3D: the gap's length ("2.0 mm"), a label at its middle
     series/distance                Scalars: patch distance, mm
     series/signal                  Scalars: -log10(max(|d|, eps))
     series/force/{magnitude,x,y,z} Scalars: force, N (send_columns, known up front)
@@ -32,13 +36,14 @@ Entity tree (the README lists it too)::
     series/diagnostics/score/<code>  Scalars: the check's measured value / its threshold (> 1 fires), clipped at 3
     world/camera/left/evidence/residual  EncodedImage: stereo residual |left - warped right| near the tool (fired frames)
     world/camera/left/evidence/contour   Points2D: mask contour, green on an image edge, red off (fired frames)
-    contact                        TextDocument: the instrument in contact at this frame (with a model: the largest
-                                   instrument posterior at or above the threshold; without: the nearest instrument)
+    contact                        TextDocument (markdown): the instrument in contact at this frame (with a model:
+                                   the largest posterior at or above the threshold; without: the nearest), each
+                                   instrument's distance and posterior in its colour's name, the colours' legend
     log                            TextLog: bad frames, diagnostics, the no-model hint
     config                         TextDocument (static): the run's resolved configuration (JSON)
 
 Several instruments (object ids of SAM2 masks, :attr:`contact_viz.io.session.Frame.tool_ids`). Each
-instrument has its own layers, box, patch points, gap arrow and series (:data:`TOOL_ENTITIES`). The
+instrument has its own layers, box, patch points, gap and series (:data:`TOOL_ENTITIES`), in its colour. The
 *primary* instrument (the lowest selected object id, or id 1 when none is selected: a binary mask's only
 instrument) keeps the single-instrument paths above, so a session of one instrument records what it
 always did; every other instrument ``k`` logs the same things one level down, at
@@ -49,7 +54,7 @@ always did; every other instrument ``k`` logs the same things one level down, at
     world/camera/left/patch/tools/<k>     Boxes2D: its patch window
     world/camera/depth/layers/tools/<k>   its layers on the depth grid (AnnotationContext too)
     world/camera/depth/patch/tools/<k>    its patch window on the depth grid
-    world/patch/{tissue,tool,gap}/tools/<k>  its patch points and gap arrow
+    world/patch/{tissue,tool,gap,gap_length}/tools/<k>  its patch points and gap
     series/distance/tools/<k>             Scalars: its patch distance, mm
     series/signal/tools/<k>               Scalars: its signal
     series/contact/posterior/tools/<k>    Scalars: instrument k's own causal posterior, for every instrument
@@ -73,6 +78,7 @@ __all__ = [
     "ENTITY_LEFT_IMAGE",
     "ENTITY_LEFT_LAYERS",
     "ENTITY_LEFT_PATCH",
+    "ENTITY_LEFT_LABELS",
     "ENTITY_RIGHT_CAMERA",
     "ENTITY_RIGHT_IMAGE",
     "ENTITY_DEPTH_CAMERA",
@@ -85,6 +91,7 @@ __all__ = [
     "ENTITY_PATCH_TISSUE",
     "ENTITY_PATCH_TOOL",
     "ENTITY_PATCH_GAP",
+    "ENTITY_PATCH_GAP_LENGTH",
     "ENTITY_SERIES_DISTANCE",
     "ENTITY_SERIES_SIGNAL",
     "ENTITY_SERIES_FORCE",
@@ -128,6 +135,7 @@ ENTITY_LEFT_CAMERA = "world/camera/left"
 ENTITY_LEFT_IMAGE = "world/camera/left/image"
 ENTITY_LEFT_LAYERS = "world/camera/left/layers"
 ENTITY_LEFT_PATCH = "world/camera/left/patch"
+ENTITY_LEFT_LABELS = "world/camera/left/labels"  # Points2D: every instrument's label, in its colour, kept apart
 ENTITY_RIGHT_CAMERA = "world/camera/right"
 ENTITY_RIGHT_IMAGE = "world/camera/right/image"
 ENTITY_DEPTH_CAMERA = "world/camera/depth"
@@ -140,6 +148,7 @@ ENTITY_CLOUD_FAR = "world/cloud/far"
 ENTITY_PATCH_TISSUE = "world/patch/tissue"
 ENTITY_PATCH_TOOL = "world/patch/tool"
 ENTITY_PATCH_GAP = "world/patch/gap"
+ENTITY_PATCH_GAP_LENGTH = "world/patch/gap_length"  # Points3D: the gap's length as a label at its middle
 ENTITY_SERIES_DISTANCE = "series/distance"
 ENTITY_SERIES_SIGNAL = "series/signal"
 ENTITY_SERIES_FORCE = "series/force"
@@ -177,9 +186,10 @@ TIMELINE_TIME = "time"  # duration timeline: session time, s
 PER_FRAME_ENTITIES = (
     ENTITY_LEFT_IMAGE, ENTITY_LEFT_LAYERS, ENTITY_LEFT_PATCH, ENTITY_RIGHT_IMAGE, ENTITY_DEPTH_IMAGE,
     ENTITY_DEPTH_LAYERS, ENTITY_DEPTH_PATCH, ENTITY_CLOUD_NEAR, ENTITY_CLOUD_FAR, ENTITY_PATCH_TISSUE,
-    ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP,
+    ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP, ENTITY_PATCH_GAP_LENGTH,
 )
-PATCH_ENTITIES = (ENTITY_LEFT_PATCH, ENTITY_DEPTH_PATCH, ENTITY_PATCH_TISSUE, ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP)
+PATCH_ENTITIES = (ENTITY_LEFT_PATCH, ENTITY_DEPTH_PATCH, ENTITY_PATCH_TISSUE, ENTITY_PATCH_TOOL, ENTITY_PATCH_GAP,
+                  ENTITY_PATCH_GAP_LENGTH)
 
 TOOLS_PART = "tools"  # the path part before an instrument's object id (tool_entity)
 TOOL_LAYER_ENTITIES = (ENTITY_LEFT_LAYERS, ENTITY_DEPTH_LAYERS)  # each instrument's SegmentationImages

@@ -26,9 +26,11 @@ from contact_viz.model.hmm import StreamingFilter
 from contact_viz.params import to_dict
 from contact_viz.pipeline.extract import run_config
 from contact_viz.viz import rerun_log
+from contact_viz.viz.blueprint import DEPTH_LEGEND, layer_legend
 from contact_viz.viz.diagnostics import DiagnosticsTracker
 from contact_viz.viz.images import ImageReader, ShownImages, VideoStreams, right_step_of
 from contact_viz.viz.options import DebuggerOptions, RunSummary
+from contact_viz.viz.style import instrument_style
 
 
 class InstrumentPosteriors:
@@ -80,28 +82,31 @@ def contact_instrument(posteriors: dict[int, float], threshold: float) -> tuple[
 
 def contact_text(tool_patches: dict, posteriors: dict[int, float] | None, threshold: float | None,
                  contact: int | None, top: int | None) -> str:
-    """The frame's ENTITY_CONTACT text: the instrument in contact (with a model) or nearest (without),
-    then each instrument's distance (and posterior)."""
+    """The frame's ENTITY_CONTACT document (markdown): the contact state as a heading (the instrument in contact
+    with a model, or the nearest without), then each instrument's distance (and posterior) under its colour's name,
+    then the legend of the colours (blueprint.layer_legend)."""
+    def name(tool: int) -> str:
+        return f"instrument {tool} ({instrument_style(tool).colour_name})"
+
     if not tool_patches:
-        return "no instrument in this frame"
-    if posteriors is not None:
+        head = "no instrument in this frame"
+    elif posteriors is not None:
         if contact is not None:
-            head = f"in contact: instrument {contact} (P {posteriors[contact]:.2f} >= threshold {threshold:.2f})"
+            head = f"in contact: {name(contact)}, P {posteriors[contact]:.2f} >= threshold {threshold:.2f}"
         else:
-            head = (f"no instrument in contact (largest P: instrument {top}, {posteriors[top]:.2f} < threshold "
-                    f"{threshold:.2f})")
+            head = f"no contact: largest P {posteriors[top]:.2f} ({name(top)}) < threshold {threshold:.2f}"
     elif contact is not None:
-        head = f"nearest instrument: {contact} ({tool_patches[contact].distance_m * 1000:.1f} mm)"
+        head = f"nearest: {name(contact)}, {tool_patches[contact].distance_m * 1000:.1f} mm"
     else:
-        head = "nearest instrument: none (no instrument has a distance in this frame)"
-    lines = [head]
+        head = "nearest: none (no instrument has a distance in this frame)"
+    lines = [f"**{head}**", ""]
     for tool, patch in sorted(tool_patches.items()):
         d = patch.distance_m
-        text = f"instrument {tool}: " + (f"{d * 1000:.1f} mm" if math.isfinite(d) else "no distance")
+        text = f"- {name(tool)}: " + (f"{d * 1000:.1f} mm" if math.isfinite(d) else "no distance")
         if posteriors is not None:
             text += f", P {posteriors[tool]:.2f}"
         lines.append(text)
-    return "\n".join(lines)
+    return "\n".join([*lines, "", f"*{layer_legend()}*", "", f"*{DEPTH_LEGEND}*"])
 
 
 def _pose_samples(session: Session, options: DebuggerOptions) -> np.ndarray | None:
@@ -141,6 +146,18 @@ def _instrument_view(tool: int, patch, depth_m: np.ndarray, K: np.ndarray, step:
     )
 
 
+class _ImagesOf:
+    """The image fields of :class:`rerun_log.FrameView` from a frame's ShownImages (for a bad frame); ``video``:
+    the image entities that are video streams (their frames, grey where unreadable, go to the encoders)."""
+
+    def __init__(self, shown: ShownImages, video: frozenset[str], with_right: bool) -> None:
+        self.left_jpeg, self.left_rgb = shown.left_jpeg, shown.left_rgb
+        self.right_jpeg, self.right_rgb = shown.right_jpeg, shown.right_rgb
+        self.left_in_video = rerun_log.ENTITY_LEFT_IMAGE in video
+        self.right_in_video = rerun_log.ENTITY_RIGHT_IMAGE in video
+        self.has_right = with_right
+
+
 class FrameLogger:
     """A run's logging state: static data at the start, then :meth:`log` per frame, :meth:`finish` at the end.
 
@@ -158,7 +175,7 @@ class FrameLogger:
         self.session, self.rec, self.options, self.model = session, rec, options, model
         self.K = np.asarray(session.calibration.K, dtype=np.float64)
         self.step = options.depth_step
-        with_right = options.with_right and session.has_right
+        with_right = self.with_right = options.with_right and session.has_right
         rerun_log.log_static(rec, session, depth_step=self.step, depth_K=decimated_intrinsics(self.K, self.step),
                              with_right=with_right, with_model=model is not None,
                              right_step=right_step_of(session, options))
@@ -179,7 +196,9 @@ class FrameLogger:
         selected = getattr(session, "object_ids", None)
         # the primary instrument (single-instrument entity paths): the lowest selected id, else 1 (a binary mask's)
         self.instruments = rerun_log.InstrumentLayers(min(selected) if selected else 1, with_model=model is not None,
-                                                      several=bool(selected) and len(selected) > 1)
+                                                      several=bool(selected) and len(selected) > 1,
+                                                      image_size=session.image_size)
+        self.check_lines = rerun_log.CheckLines()  # the checks' score lines, drawn where near firing
         self.instrument_frames: dict[int, int] = {}
         self.nearest_frames: dict[int, int] = {}
         self.contact_frames: dict[int, int] = {}
@@ -187,6 +206,7 @@ class FrameLogger:
         # the encoders first: a stream they refuse is read as JPEG images
         self.videos = VideoStreams(session, rec, options, with_right) if options.images == "video" else None
         self.reader = ImageReader(session, options, with_right, self.videos)
+        self.video_entities = frozenset(self.videos.encoders if self.videos is not None else ())
         self.depth_kind = rerun_log.DepthKindLayer()  # fine / coarse SGBM depth on the depth pane
         self.done = self.bad = 0
         self.prepare_s = self.log_s = 0.0
@@ -231,15 +251,20 @@ class FrameLogger:
             self.bad += 1
             t3 = time.perf_counter()
             rerun_log.log_bad_frame(rec, frame, posterior=posterior, predicted=predicted, diagnostics=diagnostics,
-                                    instruments=self.instruments, contact_text="this frame could not be read")
+                                    instruments=self.instruments, contact_text="this frame could not be read",
+                                    lines=self.check_lines)
+            rerun_log.log_images(rec, _ImagesOf(shown, self.video_entities, self.with_right))  # its own, or none
             self.depth_kind.log(rec, None)
+            if self.videos is not None:
+                self.videos.feed(frame.index, shown)
         else:
             problem = no_patch_problem(patch.reason, patch.invalid_depth_fraction)
             if problem is not None:  # the frame was read, but its input gives nothing to measure
                 layer = "mask" if problem == FULL_MASK else "depth"
                 warnings.warn(no_patch_message(frame.stem, problem, session.layer_file(layer, frame.stem)),
                               NoPatchWarning, stacklevel=2)
-            kind_ids = rerun_log.depth_kind_ids(frame.depth_fine, step)
+            depth_u16 = depth_preview(frame.depth_m, step, options.depth_units_per_m)
+            kind_ids = rerun_log.depth_kind_ids(frame.depth_fine, step, depth_u16)
             # each instrument's layers; a frame without any shows its (empty) patch as the primary's
             views = [_instrument_view(tool, tool_patch, frame.depth_m, K, step, options,
                                       None if each is None else each[tool])
@@ -250,13 +275,14 @@ class FrameLogger:
                 left_rgb=shown.left_rgb,
                 right_jpeg=shown.right_jpeg,
                 right_rgb=shown.right_rgb,
-                left_in_video=shown.left_i420 is not None,
-                right_in_video=shown.right_i420 is not None,
-                has_right=shown.has_right,
-                depth_u16=depth_preview(frame.depth_m, step, options.depth_units_per_m),
+                left_in_video=rerun_log.ENTITY_LEFT_IMAGE in self.video_entities,
+                right_in_video=rerun_log.ENTITY_RIGHT_IMAGE in self.video_entities,
+                has_right=self.with_right,  # (a frame without its right image: the pane is emptied)
+                depth_u16=depth_u16,
                 depth_units_per_m=options.depth_units_per_m,
                 instruments=views,
                 cloud=depth_cloud(frame.depth_m, K, shown.colors_rgb, center_xy=patch.center_xy,
+                                  centers_xy=[p.center_xy for p in tools.values()], tool_ids=frame.tool_ids,
                                   params=options.cloud) if options.points else None,
                 posterior=posterior,
                 predicted=predicted,
@@ -269,7 +295,7 @@ class FrameLogger:
                                           None if self.model is None else self.model.threshold, contact, top),
             )
             t3 = time.perf_counter()
-            rerun_log.log_frame(rec, result, view, self.instruments)
+            rerun_log.log_frame(rec, result, view, self.instruments, self.check_lines)
             self.depth_kind.log(rec, kind_ids)
             if self.videos is not None:
                 self.videos.feed(frame.index, shown)
@@ -286,7 +312,10 @@ class FrameLogger:
         frame = result.frame
         rerun_log.set_frame_time(self.rec, frame.index, frame.timestamp_s)
         tools, posterior, predicted, each, _, _ = self._contact(result)
-        rerun_log.log_series_only(self.rec, tools, posterior, predicted, each, self.instruments)
+        rerun_log.log_series_only(self.rec, tools, posterior, predicted, each, self.instruments, self.video_entities)
+        self.depth_kind.log(self.rec, None)
+        if self.videos is not None:  # a grey frame: the video must not show the frame before as this one
+            self.videos.feed(frame.index, ShownImages(None, None, None, None, None, None, None, self.with_right, ()))
         self.last_index = frame.index
 
     def finish(self, indices_done, *, started: float, interrupted: bool = False, stop_signal: int = 0,

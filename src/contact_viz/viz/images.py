@@ -196,6 +196,7 @@ class VideoStreams:
             except EncoderUnavailable as exc:
                 refused.setdefault((False, exc.reason), []).append((sides[entity], f"{video_w}x{video_h}"))
         self.entities = list(self.encoders)
+        self._grey: dict[str, np.ndarray] = {}  # entity -> the frame an unreadable image is encoded as
         self.jpeg_sides = frozenset(side for streams in refused.values() for side, _ in streams)
         for (checked_size, reason), streams in refused.items():
             where = " and ".join(str(session.root / side) for side, _ in streams)
@@ -208,11 +209,17 @@ class VideoStreams:
             rerun_log.log_video_codec(rec, self.entities, params.codec)
 
     def feed(self, index: int, shown: ShownImages) -> None:
-        """Queue this frame's images (those that could be read) and log the samples finished so far."""
+        """Queue this frame's images and log the samples finished so far. A side whose image could not be read
+        gets a mid-grey frame: a video shows its last frame until the next sample, and the viewer must not show
+        the frame before as this one's."""
         for entity, i420 in ((rerun_log.ENTITY_LEFT_IMAGE, shown.left_i420),
                              (rerun_log.ENTITY_RIGHT_IMAGE, shown.right_i420)):
-            if i420 is not None and entity in self.encoders:
-                self._log(entity, self.encoders[entity].submit(i420, index))
+            encoder = self.encoders.get(entity)
+            if encoder is None:
+                continue
+            if i420 is None:
+                i420 = self._grey.setdefault(entity, np.full(encoder.frame_shape_i420, 128, np.uint8))
+            self._log(entity, encoder.submit(i420, index))
 
     def _log(self, entity: str, samples) -> None:
         rerun_log.log_video_samples(self.rec, entity, samples, self.session.timestamps_s)

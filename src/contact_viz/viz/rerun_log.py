@@ -25,29 +25,31 @@ from contact_viz.geometry.patch import PatchResult
 from contact_viz.geometry.pointcloud import Cloud, PatchGeometry
 from contact_viz.io.session import BadFrame, Session
 from contact_viz.params import MM_PER_M
-from contact_viz.viz.blueprint import SCORE_CLIP, default_blueprint, depth_kind_legend  # noqa: F401 (re-exported)
+from contact_viz.viz.blueprint import (  # noqa: F401 (re-exported)
+    MARKER_LANE, SCORE_CLIP, default_blueprint)
 from contact_viz.viz.entities import *  # noqa: F403  (the entity paths, re-exported for scripts)
+from contact_viz.viz.instrument_log import InstrumentLayers, InstrumentView  # noqa: F401 (re-exported)
 from contact_viz.viz.sinks import (  # noqa: F401 (re-exported)
     DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT, OpenedRecording, SinkError, open_recording)
 from contact_viz.viz.style import (
     DEPTH_COARSE,
     DEPTH_COLORMAP,
     DEPTH_FINE,
+    DEPTH_FINE_EDGE,
     DEPTH_KIND_DRAW_ORDER,
     DEPTH_KIND_STYLES,
+    DEPTH_NONE,
     DIAGNOSTIC_STYLES,
-    INSTRUMENT_POSTERIOR_WIDTH_PX,
     KINEMATIC_STYLES,
     LAYER_OVERLAY_OPACITY,
     LAYER_STYLES,
-    PATCH_STYLES,
     SERIES_STYLES,
-    InstrumentStyle,
     instrument_style,
 )
 
 __all__ = [
     "APPLICATION_ID",
+    "CheckLines",
     "DepthKindLayer",
     "OpenedRecording",
     "RecordingStream",
@@ -86,17 +88,19 @@ __all__ = [
     "FrameView",
     "InstrumentLayers",
     "InstrumentView",
+    "EMPTY_PNG",
     "MODEL_HINT",
     "TIMELINE_FRAME",
     "TIMELINE_TIME",
+    "clear_image",
     "default_blueprint",
     "depth_kind_ids",
-    "depth_kind_legend",
     "diagnostic_entity",
     "diagnostic_score_entity",
     "log_session_diagnostics",
     "log_bad_frame",
     "log_frame",
+    "log_images",
     "log_model_hint",
     "log_static",
     "log_video_codec",
@@ -107,8 +111,6 @@ __all__ = [
 ]
 
 IMAGE_PLANE_DISTANCE_M = 0.015  # how far from each camera its image is drawn in the 3D view, m
-GAP_ARROW_RADIUS_M = 0.0002  # shaft radius of the gap arrow, m
-BOX_LINE_RADIUS_PX = 1.5  # half line width of the patch box, UI px (negative radii in Rerun = UI units)
 EVIDENCE_OPACITY = 0.7  # opacity of the stereo-residual image over the left image, 0-1
 EVIDENCE_MAX_POINTS = 3000  # contour points drawn at most (evenly subsampled), count
 EVIDENCE_CHECKS = ("mask_image_edges", "mask_on_tissue", "tool_depth_outside", "stereo_residual", "frozen_depth",
@@ -120,22 +122,14 @@ MODEL_HINT = (
     "`contact-viz fit TRAIN_SESSION... -o model.json`, then add `--model model.json`."
 )
 
-def _marker_height(code: str, scores) -> float:
-    """Where a firing check's marker sits: on its score line (clipped), or at 1 for checks without a score."""
-    score = (scores or {}).get(code)
-    return min(float(score), SCORE_CLIP) if score is not None and math.isfinite(score) else 1.0
+CHECK_LANES = {code: k for k, code in enumerate({**DIAGNOSTIC_CODES, **SESSION_DIAGNOSTIC_CODES})}
+SCORE_SHOWN = 0.5  # a check's score line is drawn where it is at least this (far from firing below), ratio
 
 
-@dataclass(frozen=True)
-class InstrumentView:
-    """One instrument's part of a readable frame, display-ready (prepared by the debugger)."""
-
-    tool: int  # object id (the primary instrument is logged at the single-instrument paths: InstrumentLayers)
-    patch: PatchResult  # its patch: layer ids, window, distance, signal
-    depth_layers: np.ndarray  # (h, w) uint8 its layer ids on the decimated depth grid
-    depth_window_xyxy: tuple[float, float, float, float] | None  # its patch window on the depth grid, px
-    geometry: PatchGeometry | None  # its patch in 3D (None = no patch)
-    posterior: float | None = None  # its own causal posterior P(contact) (None = no model)
+def marker_height(code: str) -> float:
+    """Where a firing check's markers sit: in a lane of its own above every score line (two checks firing together
+    never hide each other)."""
+    return SCORE_CLIP + (CHECK_LANES[code] + 1) * MARKER_LANE
 
 
 @dataclass(frozen=True)
@@ -156,7 +150,7 @@ class FrameView:
     diagnostics: Sequence[Diagnostic] = ()  # checks that fired at this frame
     diagnostic_scores: dict | None = None  # check code -> measured value / threshold (> 1 fires)
     evidence: FrameEvidence | None = None  # residual image and contour of the frame checks
-    has_right: bool = False  # the session has a right image here (if right_* are None it is cleared)
+    has_right: bool = False  # the run shows right images (if this frame's right_* are None the pane is emptied)
     left_in_video: bool = False  # the left image goes to its video stream (log_video_samples), not logged here
     right_in_video: bool = False  # the right image goes to its video stream
     notes: Sequence[str] = ()  # other warnings of this frame (e.g. an unreadable right image)
@@ -240,12 +234,12 @@ def log_static(
         style = DIAGNOSTIC_STYLES[code]
         rec.log(
             diagnostic_entity(code),
-            rr.SeriesPoints(colors=[style.rgba], names=[style.name], markers=[markers[k % len(markers)]],
+            rr.SeriesPoints(colors=[style.rgba], names=[f"{style.name}: fired"], markers=[markers[k % len(markers)]],
                             marker_sizes=[style.width_px]),
             static=True,
         )
-        rec.log(diagnostic_score_entity(code), rr.SeriesLines(colors=[style.rgba], widths=[1.0],
-                                                              names=[f"{style.name} (score)"]), static=True)
+        rec.log(diagnostic_score_entity(code), rr.SeriesLines(colors=[style.rgba], widths=[1.5],
+                                                              names=[style.name]), static=True)
 
 
 def _scaled_K(K: np.ndarray, step: int) -> np.ndarray:
@@ -307,6 +301,26 @@ def set_frame_time(rec: rr.RecordingStream, index: int, timestamp_s: float) -> N
     rec.set_time(TIMELINE_TIME, duration=float(timestamp_s))
 
 
+def _empty_png() -> bytes:
+    import cv2
+
+    ok, data = cv2.imencode(".png", np.zeros((1, 1, 4), np.uint8))
+    assert ok
+    return data.tobytes()
+
+
+# A fully transparent 1x1 PNG (67 bytes). The viewer ignores rr.Clear on encoded images (rerun-io/rerun#12793,
+# Rerun 0.41): an encoded image's entity without an image at a frame gets this one instead, after the Clear.
+EMPTY_PNG = _empty_png()
+
+
+def clear_image(rec: rr.RecordingStream, entity: str, recursive: bool = False) -> None:
+    """Nothing at ``entity`` from now on: a Clear, and an empty encoded image (the viewer keeps showing the last
+    encoded image through a Clear)."""
+    rec.log(entity, rr.Clear(recursive=recursive))
+    rec.log(entity, rr.EncodedImage(contents=EMPTY_PNG, media_type="image/png"))
+
+
 def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np.ndarray | None,
                in_video: bool = False) -> None:
     if in_video:
@@ -316,7 +330,15 @@ def _log_image(rec: rr.RecordingStream, entity: str, jpeg: bytes | None, rgb: np
     elif rgb is not None:
         rec.log(entity, rr.Image(rgb, color_model="RGB"))
     else:
-        rec.log(entity, rr.Clear(recursive=False))
+        clear_image(rec, entity)
+
+
+def log_images(rec: rr.RecordingStream, view) -> None:
+    """A frame's left and right images (a :class:`FrameView`, or anything with its image fields): each is the
+    frame's own or absent, never the frame before's."""
+    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb, view.left_in_video)
+    if view.has_right:
+        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb, view.right_in_video)
 
 
 VIDEO_CODECS = {"av1": rr.VideoCodec.AV1, "h264": rr.VideoCodec.H264}  # VideoParams.codec -> Rerun's codec
@@ -341,12 +363,6 @@ def log_video_samples(rec: rr.RecordingStream, entity: str, samples: Sequence, t
                                                     is_keyframe=[s.is_keyframe for s in samples]))
 
 
-def _box(window: tuple[float, float, float, float], label: str, colour=PATCH_STYLES["window"]) -> rr.Boxes2D:
-    x0, y0, x1, y1 = window
-    return rr.Boxes2D(mins=[[x0, y0]], sizes=[[x1 - x0, y1 - y0]], labels=[label],
-                      colors=[colour], radii=[-BOX_LINE_RADIUS_PX])
-
-
 def _log_series(rec: rr.RecordingStream, entity: str, value: float) -> None:
     rec.log(entity, rr.Scalars(float(value)))
 
@@ -358,12 +374,29 @@ def _log_contact(rec: rr.RecordingStream, posterior: float | None, predicted: bo
         _log_series(rec, ENTITY_SERIES_PREDICTED, 1.0 if predicted else 0.0)
 
 
+class CheckLines:
+    """The checks' score lines over a run: a check's score is drawn where it is at least SCORE_SHOWN (a NaN breaks
+    its line where it falls below), so that the plot and its legend hold the checks that came near firing."""
+
+    def __init__(self) -> None:
+        self.up: set[str] = set()  # checks whose line is drawn at the current frame
+
+    def log(self, rec: rr.RecordingStream, scores: dict | None) -> None:
+        scores = scores or {}
+        for code, score in scores.items():
+            if math.isfinite(score) and score >= SCORE_SHOWN:
+                _log_series(rec, diagnostic_score_entity(code), min(score, SCORE_CLIP))
+                self.up.add(code)
+        for code in sorted(self.up - {c for c, v in scores.items() if math.isfinite(v) and v >= SCORE_SHOWN}):
+            _log_series(rec, diagnostic_score_entity(code), math.nan)
+            self.up.discard(code)
+
+
 def _log_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic], notes: Sequence[str],
-                     scores: dict | None = None) -> None:
-    for code, score in (scores or {}).items():
-        _log_series(rec, diagnostic_score_entity(code), min(score, SCORE_CLIP))
+                     scores: dict | None = None, lines: CheckLines | None = None) -> None:
+    (lines or CheckLines()).log(rec, scores)
     for diagnostic in diagnostics:
-        _log_series(rec, diagnostic_entity(diagnostic.code), _marker_height(diagnostic.code, scores))
+        _log_series(rec, diagnostic_entity(diagnostic.code), marker_height(diagnostic.code))
         if diagnostic.code != "bad_frame":  # log_bad_frame writes that one's text
             rec.log(ENTITY_LOG, rr.TextLog(f"frame {diagnostic.index}: {diagnostic.message}",
                                            level=rr.TextLogLevel.WARN))
@@ -371,157 +404,24 @@ def _log_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic],
         rec.log(ENTITY_LOG, rr.TextLog(note, level=rr.TextLogLevel.WARN))
 
 
-class InstrumentLayers:
-    """Every instrument's own entities, frame by frame (entities.py: several instruments).
-
-    The primary instrument (``primary``: the lowest selected object id, 1 without a selection) is logged
-    at the single-instrument paths, any other instrument ``k`` at ``tool_entity(entity, k)``, each in its
-    colours (:func:`contact_viz.viz.style.instrument_style`; instrument 1's are the world's layer classes,
-    the others get an AnnotationContext on their layer entities, static, the first time they appear).
-    An instrument that leaves the frame (or a bad frame) gets its entities cleared and its series broken
-    by a NaN, once: a stale layer never shows.
-
-    The session counts as one of several instruments from the first frame with an instrument other than
-    the primary (or from the start, ``several``: the selection names several); from then on the boxes and
-    gap arrows are labelled with the instrument ("2: 3.1 mm", and "· in contact" / "· nearest" on
-    the frame's ``contact_tool``), the series are named after the instruments, and with a model each
-    instrument's own posterior is logged too (``tool_entity(ENTITY_SERIES_POSTERIOR, k)``, the primary's
-    included; before, it is the scene's). A session of one instrument records exactly what it did
-    before there were several.
-    """
-
-    def __init__(self, primary: int = 1, *, with_model: bool = False, several: bool = False) -> None:
-        self.primary = int(primary)
-        self.with_model = with_model
-        self.several = several
-        self.styled: set[int] = set()  # instruments whose static styles are logged
-        self.shown: set[int] = set()  # instruments whose entities hold data at the current time
-
-    def entity(self, entity: str, tool: int) -> str:
-        """Where instrument ``tool`` logs its ``entity`` (one of TOOL_ENTITIES, or the distance / signal series)."""
-        return entity if tool == self.primary else tool_entity(entity, tool)
-
-    # -- static styles -------------------------------------------------------------------------
-
-    def _series_styles(self, rec: rr.RecordingStream, style: InstrumentStyle) -> None:
-        tool = style.tool
-        if tool == 1 and tool == self.primary and not self.several:
-            return  # log_static's series styles are instrument 1's
-        named = self.several or tool != self.primary
-        for entity, key, colour, name in (
-                (ENTITY_SERIES_DISTANCE, "distance_mm", style.line, f"{style.name} (mm)"),
-                (ENTITY_SERIES_SIGNAL, "signal", style.signal, style.name)):
-            base = SERIES_STYLES[key]
-            rec.log(self.entity(entity, tool), rr.SeriesLines(colors=[colour], widths=[base.width_px],
-                                                              names=[name if named else base.name]), static=True)
-        if self.with_model and self.several:
-            rec.log(tool_entity(ENTITY_SERIES_POSTERIOR, tool),
-                    rr.SeriesLines(colors=[style.line], widths=[INSTRUMENT_POSTERIOR_WIDTH_PX],
-                                   names=[f"{style.name} P(contact)"]), static=True)
-
-    def _style(self, rec: rr.RecordingStream, tool: int) -> None:
-        if tool in self.styled:
-            return
-        self.styled.add(tool)
-        style = instrument_style(tool)
-        if tool != 1:  # (instrument 1's classes are the world's AnnotationContext, LAYER_STYLES)
-            context = rr.AnnotationContext([rr.AnnotationInfo(id=s.class_id, label=s.name, color=s.rgba)
-                                            for s in style.layers])
-            for entity in TOOL_LAYER_ENTITIES:
-                rec.log(self.entity(entity, tool), context, static=True)
-        self._series_styles(rec, style)
-
-    def _become_several(self, rec: rr.RecordingStream) -> None:
-        self.several = True
-        for tool in sorted(self.styled):  # the series named after their instruments, and their posteriors
-            self._series_styles(rec, instrument_style(tool))
-
-    # -- per frame -----------------------------------------------------------------------------
-
-    def label(self, view: InstrumentView, contact_tool: int | None) -> str:
-        """The box and gap-arrow label of ``view``: its distance; with several instruments, which one, and
-        whether it is the frame's instrument in contact (with a model) or nearest (without)."""
-        text = f"{view.patch.distance_m * MM_PER_M:.1f} mm"
-        if not self.several:
-            return text
-        mark = "" if view.tool != contact_tool else " · in contact" if self.with_model else " · nearest"
-        return f"{view.tool}: {text}{mark}"
-
-    def log(self, rec: rr.RecordingStream, views: Sequence[InstrumentView], contact_tool: int | None = None) -> None:
-        """Log the instruments of a readable frame (at the recording's current time); clear those gone."""
-        present = {v.tool for v in views}
-        if not self.several and any(tool != self.primary for tool in present):
-            self._become_several(rec)
-        for view in views:
-            self._style(rec, view.tool)
-            self._log_one(rec, view, self.label(view, contact_tool))
-        for tool in sorted(self.shown - present):
-            self._clear(rec, tool)
-        self.shown = present
-
-    def bad_frame(self, rec: rr.RecordingStream) -> None:
-        """A frame that could not be read: every instrument's entities cleared (log_bad_frame clears the
-        primary's single-instrument paths itself)."""
-        for tool in sorted(self.shown - {self.primary}):
-            self._clear(rec, tool)
-        if self.several and self.with_model and self.primary in self.shown:
-            _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, self.primary), math.nan)
-        self.shown = set()
-
-    def _log_one(self, rec: rr.RecordingStream, view: InstrumentView, label: str) -> None:
-        tool, patch, geometry = view.tool, view.patch, view.geometry
-        style = instrument_style(tool)
-        at = self.entity
-        rec.log(at(ENTITY_LEFT_LAYERS, tool), rr.SegmentationImage(patch.layer_ids, opacity=LAYER_OVERLAY_OPACITY))
-        rec.log(at(ENTITY_DEPTH_LAYERS, tool), rr.SegmentationImage(view.depth_layers,
-                                                                    opacity=LAYER_OVERLAY_OPACITY))
-        if patch.window_xyxy is not None and geometry is not None:
-            rec.log(at(ENTITY_LEFT_PATCH, tool), _box(patch.window_xyxy, label, style.window))
-            if view.depth_window_xyxy is not None:
-                rec.log(at(ENTITY_DEPTH_PATCH, tool), _box(view.depth_window_xyxy, label, style.window))
-            radii = [geometry.point_radius_m]
-            rec.log(at(ENTITY_PATCH_TISSUE, tool), rr.Points3D(geometry.tissue_points_m,
-                                                               colors=[style.tissue_points], radii=radii))
-            rec.log(at(ENTITY_PATCH_TOOL, tool), rr.Points3D(geometry.tool_points_m, colors=[style.tool_points],
-                                                             radii=radii))
-            rec.log(at(ENTITY_PATCH_GAP, tool), rr.Arrows3D(origins=[geometry.gap_origin_m],
-                                                            vectors=[geometry.gap_vector_m], colors=[style.gap],
-                                                            labels=[label], radii=[GAP_ARROW_RADIUS_M]))
-        else:
-            for entity in PATCH_ENTITIES:
-                rec.log(at(entity, tool), rr.Clear(recursive=False))
-        _log_series(rec, at(ENTITY_SERIES_DISTANCE, tool), patch.distance_m * MM_PER_M)
-        _log_series(rec, at(ENTITY_SERIES_SIGNAL, tool), patch.signal)
-        if self.several and view.posterior is not None:
-            _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, tool), view.posterior)
-
-    def _clear(self, rec: rr.RecordingStream, tool: int) -> None:
-        for entity in TOOL_ENTITIES:
-            rec.log(self.entity(entity, tool), rr.Clear(recursive=False))
-        for entity in (ENTITY_SERIES_DISTANCE, ENTITY_SERIES_SIGNAL):
-            _log_series(rec, self.entity(entity, tool), math.nan)
-        if self.several and self.with_model:
-            _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, tool), math.nan)
-
-
-def log_frame(rec: rr.RecordingStream, result, view: FrameView, instruments: InstrumentLayers) -> None:
-    """Log one readable frame: ``result`` is its FrameResult (frame + patch), ``view`` its display data and
-    ``instruments`` the per-instrument entities of the run (one InstrumentLayers for all its frames)."""
+def log_frame(rec: rr.RecordingStream, result, view: FrameView, instruments: InstrumentLayers,
+              lines: CheckLines | None = None) -> None:
+    """Log one readable frame: ``result`` is its FrameResult (frame + patch), ``view`` its display data,
+    ``instruments`` the per-instrument entities and ``lines`` the checks' score lines of the run (one of each for
+    all its frames)."""
     frame, patch = result.frame, result.patch
     if patch is None:
         raise ValueError(f"log_frame: frame {frame.index} has no patch result (a bad frame); use log_bad_frame")
     set_frame_time(rec, frame.index, frame.timestamp_s)
 
-    _log_image(rec, ENTITY_LEFT_IMAGE, view.left_jpeg, view.left_rgb, view.left_in_video)
-    if view.has_right:
-        _log_image(rec, ENTITY_RIGHT_IMAGE, view.right_jpeg, view.right_rgb, view.right_in_video)
+    log_images(rec, view)
     rec.log(ENTITY_DEPTH_IMAGE, rr.DepthImage(view.depth_u16, meter=view.depth_units_per_m, colormap=DEPTH_COLORMAP))
     instruments.log(rec, view.instruments, view.contact_tool)
 
     if view.cloud is not None:
         cloud = view.cloud
-        rec.log(ENTITY_CLOUD_NEAR, rr.Points3D(cloud.near_points_m, colors=cloud.near_colors,
-                                               radii=[cloud.near_radius_m]))
+        rec.log(ENTITY_CLOUD_NEAR, rr.Points3D(cloud.near_points_m, colors=cloud_colours(cloud),
+                                               radii=cloud.near_radii_m))
         if len(cloud.far_points_m):  # (stride_px=0: no far part)
             rec.log(ENTITY_CLOUD_FAR, rr.Points3D(cloud.far_points_m, colors=cloud.far_colors,
                                                   radii=[cloud.far_radius_m]))
@@ -529,10 +429,18 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView, instruments: Ins
     _log_series(rec, ENTITY_SERIES_INVALID_DEPTH, patch.invalid_depth_fraction)
     _log_contact(rec, view.posterior, view.predicted)
     if view.contact_text is not None:
-        rec.log(ENTITY_CONTACT, rr.TextDocument(view.contact_text))
-    _log_diagnostics(rec, view.diagnostics, view.notes, view.diagnostic_scores)
+        rec.log(ENTITY_CONTACT, rr.TextDocument(view.contact_text, media_type=rr.MediaType.MARKDOWN))
+    _log_diagnostics(rec, view.diagnostics, view.notes, view.diagnostic_scores, lines)
     _log_evidence(rec, view.evidence if any(d.code in EVIDENCE_CHECKS for d in view.diagnostics) else None,
                   frame.tool_mask.shape)
+
+
+def cloud_colours(cloud: Cloud) -> np.ndarray:
+    """The near cloud's colours: the image's on the tissue, each instrument's own colour on its points."""
+    colours = np.array(cloud.near_colors, dtype=np.uint8, copy=True)
+    for tool in np.unique(cloud.near_ids[cloud.near_ids > 0]):
+        colours[cloud.near_ids == tool] = instrument_style(int(tool)).window[:3]
+    return colours
 
 
 def log_force_sample(rec: rr.RecordingStream, force_xyz_n) -> None:
@@ -543,30 +451,55 @@ def log_force_sample(rec: rr.RecordingStream, force_xyz_n) -> None:
 
 
 def log_series_only(rec: rr.RecordingStream, tools: dict, posterior: float | None, predicted: bool | None,
-                    posteriors: dict[int, float] | None, instruments: InstrumentLayers) -> None:
+                    posteriors: dict[int, float] | None, instruments: InstrumentLayers,
+                    images_in_video: frozenset[str] = frozenset()) -> None:
     """A frame shown only in the series (at the recording's current time): each instrument's distance and
     signal (``tools``: object id -> PatchResult), the scene's posterior and decision and, with several
-    instruments, each one's posterior. No images, layers or checks (a follower catching up)."""
+    instruments, each one's posterior. No images, layers or checks (a follower catching up): those of the frame
+    before are cleared, so that none shows at this frame (``images_in_video``: the image entities that are video
+    streams, which get a grey frame from their encoder instead)."""
     for tool, patch in tools.items():
         _log_series(rec, instruments.entity(ENTITY_SERIES_DISTANCE, tool), patch.distance_m * MM_PER_M)
         _log_series(rec, instruments.entity(ENTITY_SERIES_SIGNAL, tool), patch.signal)
         if instruments.several and posteriors is not None:
             _log_series(rec, tool_entity(ENTITY_SERIES_POSTERIOR, tool), posteriors[tool])
     _log_contact(rec, posterior, predicted)
+    for entity in PER_FRAME_ENTITIES:
+        if entity in (ENTITY_LEFT_IMAGE, ENTITY_RIGHT_IMAGE):
+            if entity not in images_in_video:
+                clear_image(rec, entity)
+        else:
+            rec.log(entity, rr.Clear(recursive=False))
+    instruments.clear_layers(rec)
+    _log_evidence(rec, None, (0, 0))
 
 
-def depth_kind_ids(depth_fine: np.ndarray | None, step: int) -> np.ndarray | None:
+def depth_kind_ids(depth_fine: np.ndarray | None, step: int, depth_u16: np.ndarray | None = None
+                   ) -> np.ndarray | None:
     """The depth-kind classes on the decimated depth grid: (h, w) uint8, DEPTH_FINE where ``depth_fine``
-    ((H, W) bool, :attr:`contact_viz.io.session.Frame.depth_fine`) is True, DEPTH_COARSE elsewhere; the
-    same ``[::step, ::step]`` pixels as the depth image, so it lies on it. None when ``depth_fine`` is None."""
-    if depth_fine is None:
+    ((H, W) bool, :attr:`contact_viz.io.session.Frame.depth_fine`) is True (DEPTH_FINE_EDGE on its outermost pixels),
+    DEPTH_COARSE elsewhere, DEPTH_NONE where
+    ``depth_u16`` (the depth image, :func:`contact_viz.geometry.pointcloud.depth_preview`) is 0; the same
+    ``[::step, ::step]`` pixels as the depth image, so it lies on it. Without ``depth_fine`` (depth files) only the
+    pixels without depth are marked (the rest DEPTH_FINE, not drawn); None when there is neither."""
+    if depth_fine is None and depth_u16 is None:
         return None
-    fine = np.asarray(depth_fine, dtype=bool)[::step, ::step]
-    return np.where(fine, np.uint8(DEPTH_FINE), np.uint8(DEPTH_COARSE))
+    if depth_fine is not None:
+        import cv2
+
+        fine = np.asarray(depth_fine, dtype=bool)[::step, ::step]
+        ids = np.where(fine, np.uint8(DEPTH_FINE), np.uint8(DEPTH_COARSE))
+        edge = fine & ~cv2.erode(fine.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=1).astype(bool)
+        ids[edge] = DEPTH_FINE_EDGE
+    else:
+        ids = np.full(np.shape(depth_u16), DEPTH_FINE, np.uint8)  # (a class of its own: Rerun colours unknown ids)
+    if depth_u16 is not None:
+        ids[np.asarray(depth_u16) == 0] = DEPTH_NONE
+    return ids
 
 
 class DepthKindLayer:
-    """The fine / coarse depth layer of the depth pane (ENTITY_DEPTH_KIND), frame by frame.
+    """The fine / coarse / no-depth layer of the depth pane (ENTITY_DEPTH_KIND), frame by frame.
 
     Its classes (an AnnotationContext on the entity itself, which Rerun finds before the layer classes
     on ``world``: the ids overlap) are logged statically with the first frame that has the layer; a frame
@@ -602,7 +535,8 @@ def _log_evidence(rec: rr.RecordingStream, evidence: FrameEvidence | None, shape
     grey levels off) where it was measured near the tool, over the grey left image, and the mask contour: green where it lies on an image edge, red where not.
     """
     if evidence is None:
-        rec.log(ENTITY_LEFT_EVIDENCE, rr.Clear(recursive=True))
+        clear_image(rec, ENTITY_EVIDENCE_RESIDUAL)
+        rec.log(ENTITY_EVIDENCE_CONTOUR, rr.Clear(recursive=False))
         return
     import cv2
 
@@ -637,7 +571,7 @@ def log_session_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagn
     """The session checks (force lag, frame times), at the frame each names: a marker and a log warning."""
     for diagnostic in diagnostics:
         set_frame_time(rec, diagnostic.index, timestamp_s)
-        _log_series(rec, diagnostic_entity(diagnostic.code), 1.0)
+        _log_series(rec, diagnostic_entity(diagnostic.code), marker_height(diagnostic.code))
         rec.log(ENTITY_LOG, rr.TextLog(f"session: {diagnostic.message}", level=rr.TextLogLevel.WARN))
 
 
@@ -676,6 +610,7 @@ def log_bad_frame(
     diagnostics: Sequence[Diagnostic] = (),
     instruments: InstrumentLayers | None = None,
     contact_text: str | None = None,
+    lines: CheckLines | None = None,
 ) -> None:
     """Log a frame that could not be read: a warning naming the file, cleared images (every instrument's
     layers, with ``instruments``), gaps in the series.
@@ -685,13 +620,15 @@ def log_bad_frame(
     set_frame_time(rec, frame.index, frame.timestamp_s)
     rec.log(ENTITY_LOG, rr.TextLog(f"frame {frame.index} ({frame.stem}) could not be read and was skipped: "
                                    f"{frame.reason}", level=rr.TextLogLevel.WARN))
-    for entity in PER_FRAME_ENTITIES:
-        rec.log(entity, rr.Clear(recursive=False))
+    for entity in PER_FRAME_ENTITIES:  # (its images, when they could be read, are logged by log_images)
+        if entity not in (ENTITY_LEFT_IMAGE, ENTITY_RIGHT_IMAGE):
+            rec.log(entity, rr.Clear(recursive=False))
+    _log_evidence(rec, None, (0, 0))
     for entity in (ENTITY_SERIES_DISTANCE, ENTITY_SERIES_SIGNAL, ENTITY_SERIES_INVALID_DEPTH):
         _log_series(rec, entity, math.nan)
     if instruments is not None:
         instruments.bad_frame(rec)
     _log_contact(rec, posterior, predicted)
     if contact_text is not None:
-        rec.log(ENTITY_CONTACT, rr.TextDocument(contact_text))
-    _log_diagnostics(rec, diagnostics, ())
+        rec.log(ENTITY_CONTACT, rr.TextDocument(f"**{contact_text}**", media_type=rr.MediaType.MARKDOWN))
+    _log_diagnostics(rec, diagnostics, (), None, lines)

@@ -21,14 +21,16 @@ __all__ = [
     "DEPTH_COARSE",
     "DEPTH_COLORMAP",
     "DEPTH_FINE",
+    "DEPTH_FINE_EDGE",
     "DEPTH_KIND_DRAW_ORDER",
     "DEPTH_KIND_STYLES",
+    "DEPTH_LAYER_OPACITY",
+    "DEPTH_NONE",
     "DIAGNOSTIC_STYLES",
     "INSTRUMENT_COLOURS",
     "InstrumentStyle",
     "LAYER_OVERLAY_OPACITY",
     "LAYER_STYLES",
-    "PATCH_COLOUR_NAME",
     "PATCH_STYLES",
     "SERIES_STYLES",
     "LayerStyle",
@@ -77,26 +79,58 @@ class LayerStyle:
     colour_name: str = ""  # the colour in words, for legends that cannot show a swatch (view titles)
 
 
-LAYER_STYLES: tuple[LayerStyle, ...] = (
-    LayerStyle(LAYER_BACKGROUND, "background", TRANSPARENT),
-    LayerStyle(LAYER_INTERIOR, "tool interior", with_alpha(BLUE, INTERIOR_ALPHA), "blue"),
-    LayerStyle(LAYER_TOOL_EDGE, "tool edge (excluded)", with_alpha(SKY_BLUE, THIN_LAYER_ALPHA), "sky blue"),
-    LayerStyle(LAYER_RING, "excluded ring", with_alpha(YELLOW, THIN_LAYER_ALPHA), "yellow"),
-    LayerStyle(LAYER_BAND, "exterior band", with_alpha(BLUISH_GREEN, THIN_LAYER_ALPHA), "green"),
+# One colour per instrument (SAM2 object id), the same in every pane and on every frame: its interior and edge on the
+# images, its patch box and label, its points and gap in 3D, its distance, signal and posterior lines. Instrument k
+# takes INSTRUMENT_COLOURS[(k - 1) % 5]. Bright hues that read on red tissue, on the grey tool and on the viewer's
+# dark plot background, unlike the excluded ring's yellow and the exterior band's green (the same on every
+# instrument: what a class is reads the same everywhere).
+LIME: RGBA = (150, 230, 40, 255)
+VIOLET: RGBA = (175, 125, 255, 255)
+MAGENTA: RGBA = (255, 85, 215, 255)
+INSTRUMENT_COLOURS: tuple[tuple[RGBA, str], ...] = (
+    (SKY_BLUE, "sky blue"), (ORANGE, "orange"), (MAGENTA, "magenta"), (LIME, "lime"), (VIOLET, "violet"),
 )
+TOWARDS_WHITE = 0.45  # an instrument's edge and tool points: its colour this far towards white, 0-1
 
 
-# Which kind of depth each pixel of the depth pane is (SGBM depth with masks: contact_viz.io.session.Frame.depth_fine).
-# The fine match is left as it is; the coarse pass's (reduced resolution, read by nothing the patch measures) is
-# tinted, lightly enough that the depth under it still reads.
-DEPTH_FINE = 1  # class id: the fine stereo match (the tools and the background around them)
+def _lighter(rgba: RGBA, towards_white: float = TOWARDS_WHITE) -> RGBA:
+    """``rgba`` mixed with white (the tool edge and tool points of an instrument, lighter than its interior)."""
+    return tuple(int(round(c + (255 - c) * towards_white)) for c in rgba[:3]) + (rgba[3],)  # type: ignore[return-value]
+
+
+def _layer_styles(rgba: RGBA, colour_name: str, prefix: str = "") -> tuple[LayerStyle, ...]:
+    """The layer classes of an instrument drawn in ``rgba``: its interior and edge in its colour, the ring and
+    the band in theirs."""
+    return (
+        LayerStyle(LAYER_BACKGROUND, "background", TRANSPARENT),
+        LayerStyle(LAYER_INTERIOR, f"{prefix}tool interior", with_alpha(rgba, INTERIOR_ALPHA), colour_name),
+        LayerStyle(LAYER_TOOL_EDGE, f"{prefix}tool edge (excluded)", with_alpha(_lighter(rgba), THIN_LAYER_ALPHA),
+                   f"light {colour_name}"),
+        LayerStyle(LAYER_RING, f"{prefix}excluded ring", with_alpha(YELLOW, THIN_LAYER_ALPHA), "yellow"),
+        LayerStyle(LAYER_BAND, f"{prefix}exterior band", with_alpha(BLUISH_GREEN, THIN_LAYER_ALPHA), "green"),
+    )
+
+
+LAYER_STYLES: tuple[LayerStyle, ...] = _layer_styles(*INSTRUMENT_COLOURS[0])  # instrument 1's, and the figures'
+
+
+# Which kind of depth each pixel of the depth pane is: the fine stereo match (SGBM around the tools) or a depth file
+# as it is, SGBM's coarse full-frame pass, or no depth at all. Chosen on the three kinds of a 1080p SGBM session
+# seen in the web viewer (benchmarks/check_viewers.py): the fine region reaches only 10-25 px past the tool at 1080p
+# (2-4 px of the depth pane), so its edge is drawn in cyan; the coarse depth is dimmed and cooled by a dark blue veil
+# (the grey depth still reads under it); no depth is a solid dark red, unlike any depth grey, the veil, or a layer
+# or instrument colour.
+DEPTH_FINE = 1  # class id: the fine stereo match (the tools and the background around them), or a depth file's depth
 DEPTH_COARSE = 2  # class id: the coarse full-frame pass, at reduced resolution
-COARSE_DEPTH_ALPHA = 90  # overlay alpha of the coarse depth's tint, 0-255
+DEPTH_NONE = 3  # class id: no valid depth
+DEPTH_FINE_EDGE = 4  # class id: the fine region's outermost pixels
 DEPTH_KIND_DRAW_ORDER = -10.0  # over the depth image (Rerun's default -20), under the layer overlay (0) and box (10)
+DEPTH_LAYER_OPACITY = 0.5  # the layers on the depth pane: half as opaque as on the image, the depth shows through
 DEPTH_KIND_STYLES: tuple[LayerStyle, ...] = (
     LayerStyle(DEPTH_FINE, "fine stereo depth (what the patch reads)", TRANSPARENT),
-    LayerStyle(DEPTH_COARSE, "coarse depth (reduced resolution, not read by the patch)",
-               with_alpha(REDDISH_PURPLE, COARSE_DEPTH_ALPHA), "purple tint"),
+    LayerStyle(DEPTH_COARSE, "coarse depth (reduced resolution, not read by the patch)", (20, 30, 90, 150), "dim"),
+    LayerStyle(DEPTH_NONE, "no depth (invalid)", (150, 0, 30, 255), "red"),
+    LayerStyle(DEPTH_FINE_EDGE, "fine stereo depth, its edge", (0, 225, 225, 255), "cyan"),
 )
 
 
@@ -108,20 +142,19 @@ def layer_style(class_id: int) -> LayerStyle:
     raise KeyError(f"no layer class {class_id!r}; known ids: {[s.class_id for s in LAYER_STYLES]}")
 
 
-# The selected patch and its 3D evidence. White: it must read on red tissue, on the grey depth image
-# and over the coloured layers alike (vermillion vanished on tissue), and its label text takes its colour.
-PATCH_COLOUR_NAME = "white"  # PATCH_STYLES["window"] in words, for the view title
+# The selected patch and its 3D evidence, of instrument 1 (every instrument's are in its own colour:
+# instrument_style): the box and its label in the instrument's colour, the band points in the band's green.
 PATCH_STYLES: dict[str, RGBA] = {
-    "window": WHITE,  # the N2 window of the selected patch (2D box)
+    "window": SKY_BLUE,  # the N2 window of the selected patch (2D box) and its label
     "tissue_points": BLUISH_GREEN,  # band pixels of the N2 window whose distance entered the median (3D)
-    "tool_points": SKY_BLUE,  # interior pixels of N1 whose depth gave the tool depth (3D)
-    "gap": WHITE,  # arrow from the tool depth to the tissue along the patch centre's ray (3D)
+    "tool_points": _lighter(SKY_BLUE),  # interior pixels of N1 whose depth gave the tool depth (3D)
+    "gap": SKY_BLUE,  # the gap: the tool depth to the tissue along the patch centre's ray (3D)
 }
 
-# The robot's tool tip (view --hand-eye): magenta kinematic tip, cyan mask tip (both unlike any layer
+# The robot's tool tip (view --hand-eye): white kinematic tip, cyan mask tip (both unlike any layer or instrument
 # colour), and the tool frame's axes in the usual x/y/z = red/green/blue.
 KINEMATIC_STYLES: dict[str, tuple] = {
-    "tip": (255, 0, 255, 255),  # the kinematic tool tip (3D point, and its projection on the left image)
+    "tip": WHITE,  # the kinematic tool tip (3D point, and its projection on the left image)
     "mask": (0, 255, 255, 255),  # the tip estimated from the mask (left image)
     "axes": ((255, 0, 0, 255), (0, 200, 0, 255), (0, 80, 255, 255)),  # tool frame x, y, z (3D arrows)
 }
@@ -138,25 +171,28 @@ class SeriesStyle:
     visible: bool = True  # shown when the viewer opens (False: listed in the legend, one click shows it)
 
 
-# Keys are the series' short names, used by the viewer to pick entity paths.
+# Keys are the series' short names, used by the viewer to pick entity paths. The distance, signal and posterior
+# lines are instrument 1's colour (every other instrument's are in its own: instrument_style).
 # Contact: Rerun draws a plot's series in entity-path order (posterior, predicted, threshold, truth; seen
-# on screenshots of Rerun 0.41), so the prediction is a wide band over the thinner posterior, which shows
-# wherever it is not within the band's half-width of 0 or 1, and the truth is a hairline on top: where
-# prediction and truth disagree reads at a glance, and the posterior's ramps around each switch stay visible.
+# on screenshots of Rerun 0.41), so the prediction is a wide translucent band over the thinner posterior, and
+# the truth a yellow line on top: where prediction and truth disagree reads at a glance.
 SERIES_STYLES: dict[str, SeriesStyle] = {
-    "distance_mm": SeriesStyle("distance (mm)", ORANGE, 2.0),
-    "signal": SeriesStyle("signal -log10 max(|d|, eps), d in m", REDDISH_PURPLE, 2.0),
+    "distance_mm": SeriesStyle("distance (mm)", SKY_BLUE, 2.0),
+    "signal": SeriesStyle("signal", SKY_BLUE, 2.0),
     "force_n": SeriesStyle("|F| (N)", LIGHT_GREY, 2.0),
     # components hidden at start: with them the plot spans negative and positive newtons, too many unit
     # steps for its height, and the viewer then labels only 0 on the y axis
-    "force_x_n": SeriesStyle("Fx (N)", SKY_BLUE, 1.0, visible=False),
+    "force_x_n": SeriesStyle("Fx (N)", BLUE, 1.0, visible=False),
     "force_y_n": SeriesStyle("Fy (N)", BLUISH_GREEN, 1.0, visible=False),
-    "force_z_n": SeriesStyle("Fz (N)", ORANGE, 1.0, visible=False),
-    "contact_truth": SeriesStyle("ground truth contact (0/1)", WHITE, 1.5, step=True),
-    "posterior": SeriesStyle("HMM posterior P(contact)", SKY_BLUE, 3.0),
-    "threshold": SeriesStyle("decision threshold", GREY, 1.0),
-    "predicted": SeriesStyle("predicted contact (0/1)", VERMILLION, 7.0, step=True),
-    "invalid_depth_fraction": SeriesStyle("invalid depth in band (fraction)", LIGHT_GREY, 1.5),
+    "force_z_n": SeriesStyle("Fz (N)", VERMILLION, 1.0, visible=False),
+    "contact_truth": SeriesStyle("truth", YELLOW, 2.0, step=True),
+    "posterior": SeriesStyle("P(contact)", SKY_BLUE, 3.0),
+    # with several instruments the scene's posterior is the max over the instruments: in none of their colours, a
+    # grey that reads on the viewer's dark plots and on its light ones (the web viewer in a light-themed browser)
+    "scene_posterior": SeriesStyle("P(contact), max", (110, 110, 110, 255), 2.5),
+    "threshold": SeriesStyle("threshold", GREY, 1.0),
+    "predicted": SeriesStyle("predicted", with_alpha(VERMILLION, 150), 7.0, step=True),
+    "invalid_depth_fraction": SeriesStyle("invalid depth in the band", LIGHT_GREY, 1.5),
 }
 
 # One colour per diagnostic code (contact_viz.checks.rules), for its score line and its markers where it fires.
@@ -181,20 +217,6 @@ DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
 }
 
 
-# Several instruments (SAM2 object ids): each has a colour of its own, the same on every frame, picked by object
-# id. Instrument 1 keeps the single-instrument colours above (blue interior, white box and gap arrow, orange
-# distance line); instrument k >= 2 is drawn in INSTRUMENT_COLOURS[(k - 2) % 5]: its interior, tool edge, tool
-# points, box, gap arrow and series. The excluded ring and the exterior band keep their yellow and green on every
-# instrument (what a class is reads the same everywhere; hovering names the instrument). Bright hues unlike
-# instrument 1's colours and the ring / band, readable on red tissue, the grey tool and the dark plot background.
-LIME: RGBA = (150, 230, 40, 255)
-VIOLET: RGBA = (175, 125, 255, 255)
-MAGENTA: RGBA = (255, 85, 215, 255)
-CYAN: RGBA = (0, 225, 225, 255)
-SALMON: RGBA = (255, 130, 100, 255)
-INSTRUMENT_COLOURS: tuple[tuple[RGBA, str], ...] = (
-    (LIME, "lime"), (VIOLET, "violet"), (MAGENTA, "magenta"), (CYAN, "cyan"), (SALMON, "salmon"),
-)
 INSTRUMENT_POSTERIOR_WIDTH_PX = 1.5  # an instrument's own posterior line, over the scene's (SERIES_STYLES)
 
 
@@ -218,27 +240,15 @@ class InstrumentStyle:
 
 
 def instrument_style(tool: int) -> InstrumentStyle:
-    """The style of instrument ``tool`` (object id >= 1): instrument 1 in the single-instrument colours,
-    the others in INSTRUMENT_COLOURS by id (the same id gets the same colour in every frame and session)."""
+    """The style of instrument ``tool`` (object id >= 1): INSTRUMENT_COLOURS by id (the same id gets the same
+    colour in every frame and session; instrument 1 the single-instrument colours, LAYER_STYLES and PATCH_STYLES)."""
     tool = int(tool)
     if tool < 1:
         raise ValueError(f"tool: expected an object id >= 1 (0 is background), got {tool}")
-    if tool == 1:
-        return InstrumentStyle(1, "blue", LAYER_STYLES, PATCH_STYLES["window"], PATCH_STYLES["tissue_points"],
-                               PATCH_STYLES["tool_points"], PATCH_STYLES["gap"], SERIES_STYLES["distance_mm"].rgba,
-                               SERIES_STYLES["signal"].rgba)
-    rgba, colour_name = INSTRUMENT_COLOURS[(tool - 2) % len(INSTRUMENT_COLOURS)]
-    light = _lighter(rgba)
-    own = {LAYER_INTERIOR: with_alpha(rgba, INTERIOR_ALPHA), LAYER_TOOL_EDGE: with_alpha(light, THIN_LAYER_ALPHA)}
-    layers = tuple(LayerStyle(s.class_id, s.name if s.class_id == LAYER_BACKGROUND else f"instrument {tool}: {s.name}",
-                              own.get(s.class_id, s.rgba),
-                              colour_name if s.class_id in own else s.colour_name) for s in LAYER_STYLES)
-    return InstrumentStyle(tool, colour_name, layers, rgba, PATCH_STYLES["tissue_points"], light, rgba, rgba, rgba)
-
-
-def _lighter(rgba: RGBA, towards_white: float = 0.45) -> RGBA:
-    """``rgba`` mixed with white (the tool edge and tool points of an instrument, lighter than its interior)."""
-    return tuple(int(round(c + (255 - c) * towards_white)) for c in rgba[:3]) + (rgba[3],)  # type: ignore[return-value]
+    rgba, colour_name = INSTRUMENT_COLOURS[(tool - 1) % len(INSTRUMENT_COLOURS)]
+    layers = LAYER_STYLES if tool == 1 else _layer_styles(rgba, colour_name, f"instrument {tool}: ")
+    return InstrumentStyle(tool, colour_name, layers, rgba, PATCH_STYLES["tissue_points"], _lighter(rgba), rgba,
+                           rgba, rgba)
 
 
 def to_float_rgba(rgba: RGBA) -> tuple[float, float, float, float]:

@@ -350,6 +350,7 @@ class BackgroundEncoder:
         if max_pending < 1:
             raise ValueError(f"BackgroundEncoder: max_pending must be >= 1, got {max_pending!r}")
         self._encoder = encoder
+        self.frame_shape_i420 = (encoder.height * 3 // 2, encoder.width)  # the I420 frames it takes, (rows, cols)
         self._max_pending = max_pending
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="contact-viz-video")
         self._pending: deque[Future] = deque()

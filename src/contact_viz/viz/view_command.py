@@ -92,7 +92,6 @@ def run_view(request: ViewRequest, echo: Callable[[str, bool], None], progress=N
                             web_port=r.web_port, blueprint=default_blueprint(
                                 with_right=r.options.with_right and (session is None or session.has_right),
                                 with_model=model is not None, with_kinematics=r.hand_eye is not None,
-                                with_depth_kind=session is None or session.depth_source == "sgbm",
                                 with_lag=r.follow is not None), streamed=r.follow is not None)
     if opened.web_viewer_url:
         echo(f"web viewer: {opened.web_viewer_url}", False)
