@@ -53,12 +53,11 @@ def layer_legend() -> str:
     """The layer classes and the patch in words, for every instrument at once ("fill: the instrument's colour ·
     yellow: excluded ring · ..."): Rerun shows no legend for a SegmentationImage (a class's name appears only on
     hover), so the contact pane carries it, built from the same styles as the AnnotationContext."""
-    ring_and_band = [f"{s.colour_name}: {s.name}" for s in LAYER_STYLES[3:] if s.rgba[3] > 0]
-    return " · ".join(["tool interior: the instrument's colour, edge lighter", *ring_and_band,
-                       "box and label: its patch"])
+    ring_and_band = [f"{s.colour_name}: {s.name.split()[-1]}" for s in LAYER_STYLES[3:] if s.rgba[3] > 0]
+    return " · ".join(["tool: its colour, edge lighter", *ring_and_band, "box: patch"])
 
 
-DEPTH_LEGEND = "depth: red = none; SGBM's fine match inside the cyan line, its coarse pass dimmed"
+DEPTH_LEGEND = "depth: red = none; SGBM fine inside cyan, coarse dimmed"
 
 
 def default_blueprint(*, with_right: bool = True, with_model: bool = True,

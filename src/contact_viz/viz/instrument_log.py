@@ -56,9 +56,11 @@ CONTACT_MARK = "●"  # after the distance of the instrument in contact (with a 
 # labels: their text is about this wide per character and this tall, in image pixels per image width (the viewer
 # scales the image to its pane, the text not: measured in a 1280x720 window), and kept this far apart
 LABEL_CHAR_FRAC, LABEL_HEIGHT_FRAC, LABEL_GAP_FRAC = 0.014, 0.03, 0.006
-# the viewer draws a label in its point's colour on a light translucent plate, below the point: bright instrument
-# colours vanish there on red tissue, their dark shades (this share of each channel) read on tissue and tool alike
-LABEL_SHADE = 0.55
+# the viewer draws a label in its point's colour on a translucent plate below the point, light in the web viewer
+# (light theme) and dark in the native one: bright instrument colours vanish on the light plate, dark shades on the
+# dark one; this share of each channel keeps a WCAG contrast of 2.4-4.2 on a (225, 225, 225) plate and 2.5-4.4
+# on a (45, 45, 50) one for the five colours (0.55: 3.7-5.9 and 1.8-2.9, unreadable in the native viewer)
+LABEL_SHADE = 0.7
 
 
 @dataclass(frozen=True)
