@@ -5,6 +5,7 @@
     python recipes/sgbm_study.py --band-sweep           # SGBM settings beside the tool, training sessions only
     python recipes/sgbm_study.py --dir .study-1400 --seed-offset 100 --only-default --bleed-px ""  # another draw
     python recipes/sgbm_study.py --ceiling-draws 100    # the exact gap's F1 on 100 draws (no rendering; minutes)
+    python recipes/sgbm_study.py --camera davinci --dir .study-davinci --only-default  # a real endoscope's range
 
 Ten ``contact-viz synth`` sessions (six ``cup`` for training, seeds 1300-1305; one test session
 each on ``cup``, ``kidney``, ``liver`` and ``glove``, seeds 1310-1313) are generated once into
@@ -97,17 +98,21 @@ def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def make_sessions(directory: Path, frames: int, size: tuple[int, int]) -> None:
-    """Generate the ten sessions into ``directory/sessions`` unless already there with these settings."""
+def make_sessions(directory: Path, frames: int, size: tuple[int, int], camera: str = "default") -> None:
+    """Generate the ten sessions into ``directory/sessions`` unless already there with these settings;
+    ``camera``: a preset of `contact-viz synth --camera` (contact_viz.synth.camera)."""
     from contact_viz.synth import SynthParams, generate_session
+    from contact_viz.synth.camera import camera_fields
 
     for name, phantom, seed in TRAIN + TEST:
         out = directory / "sessions" / name
-        params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=size[0], height=size[1])
+        params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=size[0], height=size[1],
+                             **camera_fields(camera))
         info = out / "session.json"
         if info.is_file():
             g = json.loads(info.read_text()).get("generator", {})
-            if (g.get("frames"), g.get("width"), g.get("height"), g.get("seed")) == (frames, *size, seed):
+            if ((g.get("frames"), g.get("width"), g.get("height"), g.get("seed"), g.get("tissue_distance_m"))
+                    == (frames, *size, seed, params.tissue_distance_m)):
                 continue
             raise SystemExit(f"{out}: a session with other settings is there ({g.get('frames')} frames at "
                              f"{g.get('width')}x{g.get('height')}); choose another --dir")
@@ -415,6 +420,7 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=None,
                         help="frames per session (default: contact-viz synth's, 120, as in the issue)")
     parser.add_argument("--size", default="640x360", help="image size WIDTHxHEIGHT")
+    parser.add_argument("--camera", default="default", help="synth's camera preset (default, davinci, close)")
     parser.add_argument("--processes", type=int, default=2, help="processes for feature extraction")
     parser.add_argument("--profile-step", type=int, default=5, help="band profile on every n-th test frame")
     parser.add_argument("--bleed-px", default="0,2,4,6", help="bleeding widths to test, px (comma-separated)")
@@ -463,7 +469,7 @@ def main(argv=None) -> int:
         return 0
     directory = args.dir.resolve()
     cache_dir = directory / "cache"
-    make_sessions(directory, args.frames, size)
+    make_sessions(directory, args.frames, size, args.camera)
     if args.band_sweep:
         band_sweep(directory, 15, 7, args.processes)
         return 0

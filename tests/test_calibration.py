@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import cv2
@@ -14,8 +15,9 @@ from contact_viz.io.calibration import (
     read_k_txt,
     read_opencv_stereo,
     read_ros_camera_info,
+    rotation_deviation,
 )
-from contact_viz.errors import SessionError
+from contact_viz.errors import SessionError, SessionWarning
 
 W, H = 160, 120  # raw image size of the synthetic rig, px
 K1 = np.array([[150.0, 0.0, 82.0], [0.0, 152.0, 58.0], [0.0, 0.0, 1.0]])  # raw left camera, px
@@ -314,3 +316,104 @@ def test_no_calibration_lists_the_accepted_files(tmp_path):
     message = str(info.value)
     for part in ("K.txt", "left.yaml", "right.yaml", "stereo.yaml", "calibration.xml"):
         assert part in message
+
+
+# ------------------------------------------------------------------------------------------
+# R that is a rotation only to about 1e-3, as in published calibrations
+# ------------------------------------------------------------------------------------------
+
+# A symmetric perturbation: R = Q (I + E) with E symmetric and I + E positive definite has the polar
+# decomposition Q (I + E), so its nearest rotation is exactly Q (worked example, no SVD needed).
+S_UNIT = np.array([[1.0, 0.5, -0.3], [0.5, -0.8, 0.2], [-0.3, 0.2, 0.4]])  # symmetric, largest entry 1
+
+
+def perturbed(Q: np.ndarray, size: float) -> np.ndarray:
+    return Q @ (np.eye(3) + size * S_UNIT)
+
+
+def read_warnings(read, *args):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = read(*args)
+    return result, [w for w in caught if issubclass(w.category, SessionWarning)]
+
+
+def test_nearest_rotation_worked_example():
+    from scipy.linalg import polar
+    from scipy.spatial.transform import Rotation
+
+    R = perturbed(R_RL, 4e-4)
+    Q, deviation = rotation_deviation(R)
+    np.testing.assert_allclose(Q, R_RL, atol=1e-12)  # the worked example's answer
+    np.testing.assert_allclose(Q, polar(R)[0], atol=1e-12)  # SciPy's polar factor
+    np.testing.assert_allclose(Q, Rotation.from_matrix(R).as_matrix(), atol=1e-9)  # SciPy's nearest rotation
+    assert deviation == pytest.approx(np.abs(R - R_RL).max(), rel=1e-9)
+    assert rotation_deviation(-R_RL)[0] is None  # det -1: a reflection, no rotation near it
+
+
+def test_opencv_near_rotation_is_replaced_with_one_warning(tmp_path):
+    R = perturbed(R_RL, 8e-4)
+    deviation = np.abs(R - R_RL).max()
+    assert 1e-6 < deviation < 1e-3
+    write_opencv(tmp_path / "calibration.xml", K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T_RL_M * 1000,
+                 translation_unit="mm", image_width=W, image_height=H)
+    stereo, warned = read_warnings(read_calibration, tmp_path, (H, W))
+    assert len(warned) == 1, [str(w.message) for w in warned]
+    message = str(warned[0].message)
+    assert message.startswith(f"{tmp_path / 'calibration.xml'}: 'R' is not exactly a rotation")
+    assert f"{deviation:.2g}" in message and "nearest rotation is used" in message
+    check_rectification_geometry(stereo)  # rectified as with R_RL itself
+    exact_dir = tmp_path / "exact"
+    exact_dir.mkdir()
+    write_opencv(exact_dir / "calibration.xml", K1=K1, D1=D1, K2=K2, D2=D2, R=R_RL, T=T_RL_M * 1000,
+                 translation_unit="mm", image_width=W, image_height=H)
+    exact, none = read_warnings(read_calibration, exact_dir, (H, W))
+    assert none == []  # a rotation to the last digits: no warning
+    np.testing.assert_allclose(stereo.rectification.left_y, exact.rectification.left_y, atol=1e-3)
+    np.testing.assert_allclose(stereo.calibration.K, exact.calibration.K, atol=1e-9)
+
+
+def test_opencv_beyond_the_tolerance_is_refused(tmp_path):
+    R = perturbed(R_RL, 3e-3)
+    write_opencv(tmp_path / "calibration.xml", K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T_RL_M, image_width=W,
+                 image_height=H)
+    with pytest.raises(SessionError, match=r"calibration.xml: expected 'R' to be a rotation matrix \(within 0.001"):
+        read_calibration(tmp_path, (H, W))
+
+
+def published_like_R() -> tuple[np.ndarray, np.ndarray]:
+    """(R, its nearest rotation Q): an R like a published da Vinci calibration's, a small rotation times a
+    symmetric stretch of singular values 1 + 9.3e-4, 1, 1 - 1.0e-3 (det 0.99993, R R^T off the identity by
+    about 1.9e-3, its entries within 9.6e-4 of Q's)."""
+    Q = cv2.Rodrigues(np.array([-0.00178, -0.00096, 0.00014]))[0]
+    V = cv2.Rodrigues(np.array([0.0, np.pi / 4, 0.0]))[0]  # stretched along (1, 0, 1) and (1, 0, -1)
+    return Q @ V @ np.diag([1 + 9.3e-4, 1.0, 1 - 1.0e-3]) @ V.T, Q
+
+
+def test_a_published_calibration_loads_with_one_warning(tmp_path):
+    """The names and units of a published 1080p da Vinci calibration (M_l, D_l, ..., T in mm)."""
+    R, Q = published_like_R()
+    assert 1.5e-3 < np.abs(R @ R.T - np.eye(3)).max() < 2.5e-3 and abs(np.linalg.det(R) - 0.99993) < 2e-5
+    assert 9e-4 < np.abs(R - Q).max() < 1e-3  # within the tolerance, as the published file's 9.6e-4
+    M_l = np.array([[1103.4, 0.0, 921.7], [0.0, 1101.5, 545.8], [0.0, 0.0, 1.0]])
+    M_r = np.array([[1102.8, 0.0, 1018.5], [0.0, 1100.5, 544.7], [0.0, 0.0, 1.0]])
+    write_opencv(tmp_path / "calibration.xml", M_l=M_l, M_r=M_r, D_l=np.array([-0.031, 0.18, -0.0014, -0.001, -0.3]),
+                 D_r=np.array([-0.027, 0.11, -0.0011, -0.0008, -0.28]), R=R, T=np.array([-4.108, -0.144, 0.0093]),
+                 translation_unit="mm")
+    stereo, warned = read_warnings(read_calibration, tmp_path, (1080, 1920))
+    assert len(warned) == 1 and "not exactly a rotation" in str(warned[0].message)
+    assert stereo.rectification is not None and stereo.calibration.baseline_m == pytest.approx(0.004111, rel=1e-3)
+
+
+REAL_CALIBRATION = Path("/tmp/dv/CalibrationParameters.xml")  # a published calibration, on this machine only
+
+
+@pytest.mark.skipif(not REAL_CALIBRATION.is_file(), reason="the published da Vinci calibration is not here")
+def test_the_real_published_calibration_loads_with_one_warning(tmp_path):
+    # as published, but its T is in mm: the one line a user adds
+    text = REAL_CALIBRATION.read_text().replace("</opencv_storage>", "<translation_unit>mm</translation_unit>\n"
+                                                                       "</opencv_storage>")
+    (tmp_path / "calibration.xml").write_text(text)
+    stereo, warned = read_warnings(read_calibration, tmp_path, (1080, 1920))
+    assert len(warned) == 1 and "not exactly a rotation" in str(warned[0].message), warned
+    assert stereo.calibration.baseline_m == pytest.approx(0.00411, rel=1e-3)

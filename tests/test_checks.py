@@ -289,10 +289,13 @@ def test_check_command_table_json_and_exit_status(small_session, tmp_path):
     out = tmp_path / "checks.json"
     result = runner.invoke(app, ["check", str(small_session), str(broken), "--json", str(out)])
     assert result.exit_code == 0, result.output
-    assert "mask_dropout" in result.output and "10-13" in result.output
+    row = next(line for line in result.output.splitlines() if line.strip().startswith("mask_dropout"))
+    assert row.split()[1:3] == ["4", "000010-000013"], result.output  # frames named by stem, as in left/
     data = json.loads(out.read_text())
     assert [s["n_frames"] for s in data["sessions"]] == [24, 24]
-    assert data["sessions"][1]["checks"]["mask_dropout"]["ranges"] == [[10, 13]]
+    dropout = data["sessions"][1]["checks"]["mask_dropout"]
+    assert dropout["ranges"] == [[10, 13]] and dropout["stem_ranges"] == [["000010", "000013"]]
+    assert dropout["first_message"].startswith("frame 000010: ")
     assert data["sessions"][1] == json.loads(json.dumps(check_session(broken).to_dict() | {
         "elapsed_s": data["sessions"][1]["elapsed_s"]}))
     strict = runner.invoke(app, ["check", str(broken), "--strict"])
@@ -310,3 +313,64 @@ def test_check_session_interface_and_processes_agree(small_session):
     assert one.n_frames == 24 and one.fired == two.fired
     assert isinstance(one.fired, dict) and all(isinstance(r, tuple) for v in one.fired.values() for r in v)
     assert math.isfinite(json.loads(json.dumps(one.to_dict()))["elapsed_s"])
+
+
+# ------------------------------------------------------------------------------------------
+# Frames named as the user named them: by stem
+# ------------------------------------------------------------------------------------------
+
+
+def test_frame_ranges_read_as_stems():
+    from contact_viz.console import frame_name, frames_text, stem_runs
+
+    stems = ["000020", "000021", "000022", "000024", "000025", "x1"]
+    assert stem_runs([(0, 2), (3, 5)], stems) == [("000020", "000022"), ("000024", "000025"), ("x1", "x1")]
+    assert frames_text([(0, 5)], stems, 8) == "000020-000022, 000024-000025, x1"  # runs of consecutive numbers
+    real = ["021300", "022225", "022650", "023125"]  # a clip's frame numbers, far apart: one by one
+    assert frames_text([(0, 3)], real, 8) == "021300, 022225, 022650, 023125"
+    assert frames_text([(0, 3)], real, 2) == "021300, 022225, ... (4 ranges)"
+    assert frames_text([(0, 2), (4, 4)], None, 8) == "0-2, 4"  # no stems known: indices
+    assert frame_name(3, stems) == "000024" and frame_name(3, ()) == "3"
+
+
+def test_check_names_frames_by_stems_that_skip_numbers(small_session, tmp_path):
+    """A session whose stems are frame numbers 25 apart (as a clip's frames sampled from a video): every
+    flagged frame is named by its stem, in the table, the JSON and the first message."""
+    from contact_viz.cli import app
+    from contact_viz.synth.faults import inject_fault
+
+    broken = tmp_path / "broken"
+    inject_fault(small_session, broken, "mask_dropout", range(10, 14))
+    sampled = tmp_path / "sampled"
+    for sub in ("left", "right", "masks", "depth"):
+        (sampled / sub).mkdir(parents=True)
+        for path in (broken / sub).iterdir():
+            (sampled / sub / f"{25 * int(path.stem):06d}{path.suffix}").write_bytes(path.read_bytes())
+    (sampled / "K.txt").write_bytes((broken / "K.txt").read_bytes())
+    out = tmp_path / "checks.json"
+    result = CliRunner().invoke(app, ["check", str(sampled), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    row = next(line for line in result.output.splitlines() if line.strip().startswith("mask_dropout"))
+    assert "000250, 000275, 000300, 000325" in row, result.output
+    dropout = json.loads(out.read_text())["sessions"][0]["checks"]["mask_dropout"]
+    assert dropout["ranges"] == [[10, 13]]  # indices, as before
+    assert dropout["stem_ranges"] == [["000250", "000250"], ["000275", "000275"], ["000300", "000300"],
+                                      ["000325", "000325"]]
+    assert dropout["first_message"].startswith("frame 000250: ")
+
+
+def test_the_debugger_summary_names_frames_by_stem():
+    from contact_viz.viz.options import RunSummary
+
+    summary = RunSummary(frames=30, bad_frames=0, diagnostic_counts={"mask_on_tissue": 4, "not_rectified": 30},
+                         interrupted=False, elapsed_s=1.0, wait_s=0.0, image_wait_s=0.0, prepare_s=0.0, log_s=0.0,
+                         diagnostic_ranges={"mask_on_tissue": [(20, 22), (24, 24)], "not_rectified": [(0, 29)]},
+                         nearest_frames={1: 30}, closest=(1, 0.8, 21), instrument_frames={1: 30},
+                         frame_stems=tuple(f"{k:06d}" for k in range(30)),
+                         session_messages={"not_rectified": "left and right not rectified: 3.3 px vertical offset"})
+    lines = summary.lines()
+    assert "  mask_on_tissue on 4 frames: 000020-000022, 000024" in lines
+    assert "  not_rectified on 30 frames: left and right not rectified: 3.3 px vertical offset" in lines
+    assert "nearest instrument: 1 (nearest on 30 frames); closest: 0.8 mm at frame 000021" in lines
+    unnamed = replace(summary, frame_stems=())  # a summary made without stems: indices, as before
+    assert "  mask_on_tissue on 4 frames: 20-22, 24" in unnamed.lines()

@@ -255,7 +255,7 @@ def test_check_reports_per_instrument(two_tool_session):
     assert lines[0].endswith("; instruments 1, 2")
     assert lines[1].split() == ["check", "tool", "frames", "ranges", "likely", "cause"]
     row = next(line for line in lines if line.strip().startswith("frozen_depth"))
-    assert row.split()[1:4] == ["-", "1", "5"]  # a check of the whole frame: no instrument
+    assert row.split()[1:4] == ["-", "1", "000005"]  # a check of the whole frame: no instrument; frames by stem
     for code, tools in report.tool_fired.items():  # per-instrument rows name the instrument
         for tool, ranges in tools.items():
             assert any(line.split()[:2] == [code, str(tool)] for line in lines), (code, tool, lines)

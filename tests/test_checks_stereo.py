@@ -163,10 +163,10 @@ def test_check_command_says_no_depth_beside_the_tool(sessions, tmp_path):
     assert len(tables) == 3, result.output
     failed, holes, clean = tables
     row = next(line for line in failed.splitlines() if line.strip().startswith("depth_holes"))
-    assert row.rstrip().endswith(STEREO_FAILED) and " 24 " in row and "0-23" in row, result.output
+    assert row.rstrip().endswith(STEREO_FAILED) and " 24 " in row and "000000-000023" in row, result.output
     assert "mask_on_tissue" not in failed and "mask bleed" not in failed, failed
     row = next(line for line in holes.splitlines() if line.strip().startswith("depth_holes"))
-    assert row.rstrip().endswith(SOURCE_FAILED) and "0-23" in row, result.output
+    assert row.rstrip().endswith(SOURCE_FAILED) and "000000-000023" in row, result.output
     assert "mask_on_tissue" not in holes and "mask bleed" not in holes, holes
     assert "no depth beside the tool" not in clean, clean  # SGBM's usual gap at the tool's edge is no failure
     data = json.loads(out.read_text())["sessions"]

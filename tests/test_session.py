@@ -610,7 +610,8 @@ def test_sgbm_fallback_is_cached_outside_the_session(tmp_path, caplog):
         s = open_session(root, cache_dir=cache)
     assert s.depth_source == "sgbm" and "SGBM" in s.depth_note and "FoundationStereo" in s.depth_note
     assert s.depth_note in caplog.text
-    assert s.depth_config["source"] == "sgbm" and s.depth_config["sgbm"]["num_disparities"] == 16
+    # the search range from the calibration: fx 200 px x 5 mm / 15 mm = 66.7 px, capped at 96 / 4 = 24 -> 25 -> 32
+    assert s.depth_config["source"] == "sgbm" and s.depth_config["sgbm"]["num_disparities"] == 32
     assert s.depth_cache_dir is not None and cache in s.depth_cache_dir.parents
     frames = list(s.iter_frames(layers=("mask", "depth", "left", "right"), workers=2, prefetch=3))
     assert all(isinstance(f, Frame) for f in frames)

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from contact_viz.geometry.occlusion import half_occluded
 from contact_viz.geometry.patch import compute_patch
-from contact_viz.geometry.stereo import SGBMParams, disparity_to_depth
+from contact_viz.geometry.stereo import SGBMParams, disparity_to_depth, sgbm_disparity
 from contact_viz.geometry.stereo_region import _search_range, _tiles, coarse_disparity, fine_region, region_sgbm_disparity
 from contact_viz.params import PatchParams
 
@@ -31,6 +32,11 @@ def test_search_range_worked_example():
     assert _search_range(np.array([47.9, np.nan, 40.2, 44.0]), p) == (36, 32)
     assert _search_range(np.array([np.nan]), p) == (0, 80)  # nothing known: the whole range
     assert _search_range(np.array([1.0, 78.5]), p) == (0, 80)  # clipped to the whole range
+    # The whole range from the calibration (the synthetic camera at 1080p: 192 disparities at 960 px) caps it:
+    # 150.0 .. 190.0 -> 146 .. min(194, 191) = 191: 46 disparities -> 48.
+    p = SGBMParams(range_margin_px=4).resolve(1920, fx_px=960 / np.tan(np.radians(40)), baseline_m=0.005)
+    assert p.num_disparities == 192
+    assert _search_range(np.array([150.0, 190.0]), p) == (146, 48)
 
 
 def test_tiles_cover_the_region_row_by_row():
@@ -51,19 +57,19 @@ def test_tiles_cover_the_region_row_by_row():
 D_BG, D_BOX = 20, 52  # disparities of the plane and the box at full resolution, px
 
 
-def box_pair(height=360, width=1280, seed=0):
-    """A textured plane (disparity D_BG) and a textured box in front of it (D_BOX); texture in 2x2 px cells so
+def box_pair(height=360, width=1280, seed=0, d_bg=D_BG, d_box=D_BOX):
+    """A textured plane (disparity d_bg) and a textured box in front of it (d_box); texture in 2x2 px cells so
     that it survives matching at half size. Returns (left, right, box mask)."""
     rng = np.random.default_rng(seed)
-    pad = D_BOX + 2
+    pad = d_box + 2
     cells = lambda lo: np.repeat(np.repeat(rng.integers(lo, 256, (height // 2 + 1, (width + 2 * pad) // 2 + 1, 3),
                                                         dtype=np.uint8), 2, 0), 2, 1)[:height, :width + 2 * pad]
     plane, box_tex = cells(0), cells(150)
     y0, y1, x0, x1 = 100, 260, 500, 700
     left = plane[:, pad:pad + width].copy()
-    right = plane[:, pad + D_BG:pad + D_BG + width].copy()
+    right = plane[:, pad + d_bg:pad + d_bg + width].copy()
     left[y0:y1, x0:x1] = box_tex[y0:y1, pad + x0:pad + x1]
-    right[y0:y1, x0 - D_BOX:x1 - D_BOX] = box_tex[y0:y1, pad + x0:pad + x1]
+    right[y0:y1, x0 - d_box:x1 - d_box] = box_tex[y0:y1, pad + x0:pad + x1]
     tool = np.zeros((height, width), bool)
     tool[y0:y1, x0:x1] = True
     return left, right, tool
@@ -90,6 +96,43 @@ def test_region_disparity_on_a_box_at_half_size():
     outside = ~fine & np.isfinite(disparity)
     assert outside.sum() > 0.8 * (~fine).sum()
     assert np.mean(np.abs(disparity[outside] - D_BG) <= 2.0) > 0.95
+
+
+def test_a_near_box_beyond_the_width_rule_is_found_with_the_calibrated_range():
+    """A box at disparity 200 px over a plane at 40 (1280 px wide, matched at 640: 100 and 20 px). The width rule
+    searches 1/8 of 640 = 80 px and misses it; the calibration (fx 1000 px, baseline 4 mm, nearest 15 mm: 266.7
+    px, 133.3 at 640 -> 144 disparities) reaches it, in the coarse pass and the tiles. Left of the box the plane
+    is hidden from the right camera over 200 - 40 = 160 px (columns 340-499): no depth there."""
+    left, right, tool = box_pair(d_bg=40, d_box=200)
+    inner = np.zeros_like(tool)
+    inner[110:250, 510:690] = True
+    calibrated = SGBMParams().resolve(1280, fx_px=1000.0, baseline_m=0.004)
+    assert calibrated.num_disparities == 144 and SGBMParams().resolve(1280).num_disparities == 80
+    found = {}
+    for name, params in (("calibrated", calibrated), ("width", SGBMParams())):
+        disparity = region_sgbm_disparity(left, right, tool, params).disparity_px
+        found[name] = np.mean(np.abs(disparity[inner] - 200) <= 2)  # NaN counts as not found
+        if name == "calibrated":
+            strip = np.zeros_like(tool)
+            strip[100:260, 340:500] = True
+            assert np.isfinite(disparity[strip]).mean() < 0.02
+            strips = half_occluded(disparity, tool)  # the strip found from the result itself: all but its
+            assert (np.isfinite(disparity) & strips).sum() <= 0.01 * strips.sum()  # edges (coarse pixels) empty
+            right_of = np.zeros_like(tool)
+            right_of[110:250, 705:724] = True  # visible to both: the plane
+            assert np.nanmedian(np.abs(disparity[right_of] - 40)) <= 1.0
+    assert found["calibrated"] > 0.9 and found["width"] < 0.1
+
+
+def test_no_instrument_in_view_matches_the_whole_frame():
+    """An empty mask, or region off, skips the coarse pass and the tiles: plain SGBM over the whole frame."""
+    left, right, tool = (a[:, 320:960].copy() for a in box_pair())  # 640 px: matched as it is
+    assert tool.any()
+    empty = np.zeros_like(tool)
+    result = region_sgbm_disparity(left, right, empty, SGBMParams())
+    assert result.fine.all()
+    np.testing.assert_array_equal(result.disparity_px, sgbm_disparity(left, right, SGBMParams()))
+    assert region_sgbm_disparity(left, right, tool, SGBMParams(region=False)).fine.all()
 
 
 def test_coarse_pass_scales_the_search_range():

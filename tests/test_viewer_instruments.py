@@ -310,7 +310,7 @@ def test_a_binary_mask_session_records_no_instrument_paths(tmp_path):
     distances = [frame_patches(session.load_frame(i, ("mask", "depth")), PatchParams())[0].distance_m
                  for i in range(4)]
     frame = int(np.argmin(np.abs(distances)))
-    line = f"nearest instrument: 1 (nearest on 4 frames); closest: {1000 * distances[frame]:.1f} mm at frame {frame}"
+    line = f"nearest instrument: 1 (nearest on 4 frames); closest: {1000 * distances[frame]:.1f} mm at frame {frame:06d}"
     assert line in summary.lines()
     assert not [t for t in summary.lines() if t.startswith("instruments:")]
     shutil.rmtree(root)

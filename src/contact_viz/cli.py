@@ -139,6 +139,20 @@ def synth(
     shaft_elevation_deg: Annotated[Optional[float], typer.Option(
         help="Angle of the shafts above the tissue base plane, deg (e.g. 8: lying nearly flat); "
              "default: drawn around the phantom's usual axis (about 35-40 deg).")] = None,
+    camera: Annotated[str, typer.Option(
+        help="Stereo endoscope: default (80 deg horizontal field of view, 5 mm baseline, tissue at 90 mm), "
+             "davinci (measured from a da Vinci calibration: fx 1103.4 px at 1920 px wide = 82.05 deg, "
+             "4.11 mm baseline, 50 mm working distance) or close (the davinci endoscope at 30 mm). A camera "
+             "that sees less of the tissue than the default (nearer, or narrower) sees the phantom shrunk to "
+             "fill the same part of the image, and the gaps too when it sees less than the default's field at "
+             "50 mm; the instruments keep their size.")] = "default",
+    fov_deg: Annotated[Optional[float], typer.Option(
+        help="Horizontal field of view, deg (30-120) [default: the camera's].")] = None,
+    baseline_mm: Annotated[Optional[float], typer.Option(
+        help="Stereo baseline, mm [default: the camera's].")] = None,
+    working_distance_mm: Annotated[Optional[float], typer.Option(
+        help="Distance from the camera to the tissue base plane along the optical axis, mm "
+             "[default: the camera's].")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace the files of an existing session there.")] = False,
     live: Annotated[bool, typer.Option(help="Write the session frame by frame at --fps, as a recorder does "
                                        "(the same files in the end; for `contact-viz SESSION --follow`).")] = False,
@@ -152,15 +166,24 @@ def synth(
 ) -> None:
     """Make a synthetic session with known truth (stereo renders, masks, depth, force, truth.csv)."""
     from contact_viz.synth import PHANTOMS, SynthParams, generate_session
+    from contact_viz.synth.camera import camera_fields
 
     if phantom not in PHANTOMS:
         _fail(f"--phantom must be one of {', '.join(PHANTOMS)}; got {phantom!r}")
     if not live and (fps is not None or not rename or prerender):
         _fail("--fps, --no-rename and --prerender go with --live")
+    for option, value in (("--baseline-mm", baseline_mm), ("--working-distance-mm", working_distance_mm)):
+        if value is not None and not value > 0:
+            _fail(f"{option} must be a number > 0, got {value:g}")
     width, height = _parse_size(size)
     try:
+        geometry = camera_fields(camera, fov_deg=fov_deg, baseline_mm=baseline_mm,
+                                 working_distance_mm=working_distance_mm)
+    except ValueError as exc:
+        _fail(str(exc))
+    try:
         params = SynthParams(phantom=phantom, frames=frames, seed=seed, width=width, height=height, tools=tools,
-                             shaft_elevation_deg=shaft_elevation_deg)
+                             shaft_elevation_deg=shaft_elevation_deg, **geometry)
     except ValueError as exc:
         _fail(str(exc).replace("SynthParams.", "--").replace("_", "-"))
     if live:
@@ -173,7 +196,10 @@ def synth(
         except (FileExistsError, ValueError, RuntimeError) as exc:
             _fail(str(exc).replace("pass overwrite=True", "pass --overwrite"))
     instruments = "" if tools == 1 else f" with {tools} instruments"
-    typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}{instruments}")
+    lens = "" if geometry == camera_fields() else (
+        f", camera {params.fov_deg:.2f} deg, baseline {params.baseline_m * 1e3:.2f} mm, "
+        f"tissue at {params.tissue_distance_m * 1e3:.0f} mm")
+    typer.echo(f"{path}: {frames} frames of the {phantom} phantom at {width}x{height}{instruments}{lens}")
 
 
 def _synth_live(out_dir: Path, params, fps: float | None, rename: bool, prerender: bool, overwrite: bool) -> None:
@@ -451,18 +477,33 @@ def depth(
                       "(float32 m, rectified left view) into this new folder outside the session.")] = None,
     cache_dir: CacheDir = None,
     workers: Annotated[int, typer.Option(min=1, help="Frames computed in parallel.")] = 2,
+    full_frame: Annotated[bool, typer.Option("--full-frame", help="Match every frame whole at the matching "
+                          "resolution, not only around the instruments (slower; frames without an instrument "
+                          "always are). Cached apart from the default: keep it with -o.")] = False,
+    min_depth_mm: Annotated[Optional[float], typer.Option("--min-depth-mm", help="The nearest depth in the scene, "
+                            "mm: the disparity search reaches it [default: 15, an endoscope's]. Cached apart from "
+                            "the default: keep it with -o.")] = None,
 ) -> None:
     """Precompute the depth of a session that has no depth/ or disparity/ (SGBM, cached outside it)."""
+    import math
+
     from contact_viz.console import check_output_dir
     from contact_viz.errors import SessionError
+    from contact_viz.geometry.stereo import SGBMParams
     from contact_viz.pipeline.depth import run_depth_command
 
     if output is not None:
         check_output_dir(output, "-o/--output")
+    if min_depth_mm is not None and not (math.isfinite(min_depth_mm) and min_depth_mm > 0):
+        _fail(f"--min-depth-mm: expected a depth > 0 mm, got {min_depth_mm:g}")
+    fields = ({"region": False} if full_frame else {}) | (
+        {"min_depth_m": min_depth_mm / 1000} if min_depth_mm is not None else {})
+    params = SGBMParams(**fields) if fields else None
     with _progress() as progress:
         task = progress.add_task(f"depth {session_dir.name}", total=None)
         try:
             lines = run_depth_command(session_dir, method=method, output=output, cache_dir=cache_dir, workers=workers,
+                                      params=params,
                                       progress=lambda done, total: progress.update(task, completed=done, total=total))
         except (SessionError, ValueError) as exc:
             _fail(str(exc))

@@ -241,6 +241,45 @@ def check_connect_url(url: str, timeout_s: float = 2.0) -> None:
 
 
 # --------------------------------------------------------------------------------------------
+# Frames named as the user named them (their stems)
+# --------------------------------------------------------------------------------------------
+
+
+def frame_name(index: int, stems: Sequence[str] | None) -> str:
+    """Frame ``index``'s stem (its files' name in left/), or the index itself when ``stems`` is not known."""
+    return str(stems[index]) if stems and 0 <= index < len(stems) else str(index)
+
+
+def _consecutive(a: str, b: str) -> bool:
+    """Stem ``b`` is the integer after stem ``a`` (``000020``, ``000021``)."""
+    return a.isdigit() and b.isdigit() and int(b) == int(a) + 1
+
+
+def stem_runs(ranges: Iterable[tuple[int, int]], stems: Sequence[str] | None) -> list[tuple[str, str]]:
+    """(first, last) frame index ranges as (first, last) stems of runs whose stems are consecutive integers:
+    frames 20-22 of a session whose stems are 000020-000022 are one run; frames whose stems skip numbers
+    (021300, 022225) each make their own (first = last). Without ``stems``, the indices as text."""
+    out: list[tuple[str, str]] = []
+    for a, b in ranges:
+        if not stems:
+            out.append((str(a), str(b)))
+            continue
+        start = a
+        for i in range(a, b + 1):
+            if i == b or not _consecutive(stems[i], stems[i + 1]):
+                out.append((stems[start], stems[i]))
+                start = i + 1
+    return out
+
+
+def frames_text(ranges: Iterable[tuple[int, int]], stems: Sequence[str] | None, max_runs: int) -> str:
+    """``000020-000022, 000024`` (stem_runs), at most ``max_runs`` of them, then ``, ... (12 ranges)``."""
+    runs = stem_runs(ranges, stems)
+    text = ", ".join(a if a == b else f"{a}-{b}" for a, b in runs[:max_runs])
+    return text + (f", ... ({len(runs)} ranges)" if len(runs) > max_runs else "")
+
+
+# --------------------------------------------------------------------------------------------
 # Frame warnings and the end-of-run summary
 # --------------------------------------------------------------------------------------------
 

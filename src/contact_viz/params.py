@@ -227,6 +227,11 @@ class PatchParams:
     reject_bleeding: bool = True  # drop band pixels whose depth is nearer the tool's than the tissue's beyond, -
     bleed_step_m: float = checked(0.004, gt=0)  # ... only where tool and tissue beyond differ by this, m
     bleed_beyond_px: float = checked(4.0, ge=1)  # tissue beyond: background within this of the band, px
+    # band pixels the right camera cannot see (the half-occluded strip left of each instrument, found from the
+    # depth, the mask and the baseline: geometry.occlusion) are not candidates: "sgbm" with depth computed by
+    # contact-viz's SGBM (which observed nothing there), "always" also with supplied depth (a network fills the
+    # strip from its priors), "never" (the paper: every band pixel counts), -
+    hidden_strip: str = checked("sgbm", choices=("sgbm", "always", "never"))
 
     def __post_init__(self) -> None:
         check_fields(self)

@@ -118,6 +118,20 @@ class DiagnosticParams:
     signal_level: float = checked(0.85, gt=0, lt=1)  # signal "on" above this share of its range (5th-95th pct.), 0-1
     min_lag_frames: int = checked(3, ge=1)  # a force lag of at least this many frames fires, frames
     min_lag_correlation: float = checked(0.3, ge=-1, le=1)  # ... when its correlation peak is at least this, -1..1
+    # not_rectified (checks.rectification): |median vertical offset| of SIFT features matched between left and right
+    # above this fires, px of the session's images. Measured (bench_rectification.py): rectified pairs 0.00-0.03
+    # (synth, four phantoms, 640x360 and 1280x720), 0.06 (Middlebury motorcycle), 0.35 (the SCARED keyframe); with
+    # 1 px shifted in 0.92-1.04 (0.64 on SCARED); da Vinci pairs rectified with their published calibration 3.3.
+    # 0.6 is about the geometric mean of 0.35 and 0.92: 1.7x the largest rectified offset, 1/1.5 of the smallest
+    # 1 px shift on a pair rectified to 0.06 px, px
+    max_vertical_offset_px: float = checked(0.6, gt=0)
+    rectification_frames: int = checked(8, ge=1)  # ... measured on this many frames, evenly spaced, frames
+    # ... on images shrunk n times, n the smallest integer that brings the width to at most this. SIFT on this machine
+    # (loaded): 1.3 s an image at 1920x1080, 0.16 s at 640x360, 0.09 s at 320x180; the offsets measured at 320 px are
+    # those at 640 px within 0.03 px (synth, Middlebury, SCARED, da Vinci), px
+    rectification_width_px: int = checked(320, ge=16)
+    # ... and only with at least this many matches kept over those frames (fewer: too little texture to tell), matches
+    min_rectification_matches: int = checked(30, ge=1)
 
     def __post_init__(self) -> None:
         check_fields(self)

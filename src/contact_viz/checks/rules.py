@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from itertools import permutations
@@ -81,6 +81,8 @@ def no_depth_beside_cause(depth_source: str) -> str:
 SESSION_CHECKS: dict[str, tuple[str, str]] = {
     "force_lag": ("force peaks lag the distance signal", "force and frames out of sync (time offset)"),
     "frame_times": ("frame times not increasing or with gaps", "dropped frames or a bad frames.csv"),
+    "not_rectified": ("vertical offset between features matched in the left and right images",
+                      "the pair is not rectified, or rectified with a wrong or stale calibration"),
 }
 
 
@@ -230,8 +232,10 @@ class FrameChecker:
     cause when the depth beside the tool is missing (:func:`no_depth_beside_cause`)."""
 
     def __init__(self, params: DiagnosticParams = DiagnosticParams(), image_width: int = 1920,
-                 depth_source: DepthSource = "depth", *, several: bool | None = None) -> None:
+                 depth_source: DepthSource = "depth", *, several: bool | None = None,
+                 stems: Sequence[str] = ()) -> None:
         self.params = params
+        self.stems = tuple(stems)  # the session's frame stems: messages name a frame by its stem (index without)
         self.width = image_width
         self.depth_source = depth_source
         self.several = several
@@ -314,8 +318,9 @@ class FrameChecker:
                     fire("id_swap", f"this mask continues tool {before}'s of the frame before "
                                     f"(overlap {new_overlap:.2f}; with its own {own_overlap:.2f})", new_overlap, tool=k)
                 else:
-                    fire("id_swap", f"still tool {track.key}'s instrument (ids exchanged at frame {track.swapped_at})",
-                         math.nan, tool=k)
+                    at = track.swapped_at
+                    fire("id_swap", f"still tool {track.key}'s instrument (ids exchanged at frame "
+                                    f"{self.stems[at] if at < len(self.stems) else at})", math.nan, tool=k)
                 scores["id_swap"] = 2.0
             merge = track.merged
             if merge is not None and t is not None:

@@ -52,8 +52,10 @@ def without_other_instruments(depth_m: np.ndarray, tool_ids: np.ndarray, tool_id
 
 
 def instrument_patches(depth_m: np.ndarray, tool_ids: np.ndarray, params: PatchParams = PatchParams(),
-                       selected: Sequence[int] | None = None) -> dict[int, PatchResult]:
+                       selected: Sequence[int] | None = None, hidden: np.ndarray | None = None
+                       ) -> dict[int, PatchResult]:
     """The patch of every instrument of a frame (of ``selected`` ones only, when given): {object id: PatchResult}.
+    ``hidden``: pixels the right camera cannot see, for every instrument (compute_patch).
 
     ``depth_m`` (H, W) float32 m; ``tool_ids`` (H, W) integer object ids, 0 = background. The other
     instruments (selected or not) are never tissue (module docstring). No instrument: {}.
@@ -61,5 +63,6 @@ def instrument_patches(depth_m: np.ndarray, tool_ids: np.ndarray, params: PatchP
     depth_m, tool_ids = np.asarray(depth_m), np.asarray(tool_ids)
     if depth_m.shape != tool_ids.shape:
         raise ValueError(f"depth {depth_m.shape} and tool ids {tool_ids.shape} differ in shape")
-    return {k: compute_patch(without_other_instruments(depth_m, tool_ids, k, params.ring_px), tool_ids == k, params)
+    return {k: compute_patch(without_other_instruments(depth_m, tool_ids, k, params.ring_px), tool_ids == k, params,
+                             hidden)
             for k in instrument_ids(tool_ids, selected)}

@@ -62,6 +62,7 @@ REASON_NO_BAND = "no_band"
 REASON_NO_TOOL_DEPTH = "too_few_tool_pixels"
 REASON_NO_CANDIDATE = "too_few_valid_distances"
 REASON_BLEEDING = "depth_bleeding"  # as the two above, but because the bleeding test rejected band pixels
+REASON_HIDDEN = "band_hidden"  # as the two above, but the band pixels with depth are all hidden from the right camera
 
 SHAFT_GRID_PX = 2  # the shaft width is measured among every SHAFT_GRID_PX-th row and column, px
 
@@ -92,9 +93,11 @@ class PatchResult:
     tool_area_px : tool pixels in the mask, px.
     band_width_px : width of the exterior band used, px.
     n_band, n_valid_distance, n_candidates : band pixels; those with ``d`` defined; those with ``s``.
-    invalid_depth_fraction : share of band pixels with invalid depth, in [0, 1] (NaN if no band).
+    invalid_depth_fraction : share of the band pixels the right camera sees (all of them without ``hidden``)
+        with invalid depth, in [0, 1] (NaN if no band).
     n_bleeding : band pixels whose d was rejected as depth bled from the tool (``reject_bleeding``;
         see _band_distances); they count neither in n_valid_distance nor in the scores.
+    n_hidden : band pixels in ``compute_patch``'s ``hidden`` (seen by the left camera only): no d, no score.
     reason : None when a patch was found, else one of the ``REASON_*`` strings.
     """
 
@@ -117,6 +120,7 @@ class PatchResult:
     invalid_depth_fraction: float
     reason: str | None
     n_bleeding: int = 0
+    n_hidden: int = 0
 
     @property
     def found(self) -> bool:
@@ -401,7 +405,8 @@ def _patch_window(layers: _Layers, band_d: np.ndarray, band_s: np.ndarray, half2
     return best, _kernels.window_members(layers.band_flat, band_d, layers.crop_shape[1], best, half2)
 
 
-def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams = PatchParams()) -> PatchResult:
+def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParams = PatchParams(),
+                  hidden: np.ndarray | None = None) -> PatchResult:
     """Find the minimum-distance patch of one frame.
 
     Parameters
@@ -411,12 +416,18 @@ def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     tool_mask : (H, W) bool or integer
         Tool segmentation; nonzero = tool. Several blobs are all tool.
     params : PatchParams
+    hidden : (H, W) bool, optional
+        Pixels the right camera cannot see (the half-occluded strips beside the instruments,
+        ``geometry.occlusion.half_occluded``): their depth was observed by nobody, so a band pixel there
+        has no ``d`` and is neither a candidate nor in any score. None (the paper): every band pixel counts.
 
     Returns
     -------
     PatchResult
         With ``reason`` set (and NaN distance) when no patch could be found.
     """
+    if hidden is not None and hidden.shape != depth_m.shape:
+        raise ValueError(f"hidden has shape {hidden.shape}, expected the depth's {depth_m.shape}")
     layers = _build_layers(depth_m, tool_mask, params)
     if isinstance(layers, PatchResult):
         return layers
@@ -426,6 +437,8 @@ def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
     n_band = int(by.size)
     band_yx = np.stack([by + y0, bx + x0], axis=1).astype(np.int64)
     band_d, tool_mean, n_bleeding = _band_distances(layers, params.n1, params.tau_tool)
+    seen = np.ones(n_band, bool) if hidden is None else ~hidden[by + y0, bx + x0]
+    band_d[~seen] = np.nan
     n_valid = int(np.isfinite(band_d).sum())
 
     def _result(reason, center=None, window=None, tool_depth=np.nan, score=np.nan, distance=np.nan,
@@ -438,17 +451,19 @@ def compute_patch(depth_m: np.ndarray, tool_mask: np.ndarray, params: PatchParam
             shaft_width_px=layers.shaft_width_px, tool_area_px=layers.tool_area_px,
             band_width_px=layers.band_width_px, n_band=n_band,
             n_valid_distance=n_valid, n_candidates=n_cand,
-            invalid_depth_fraction=float(1.0 - layers.band_valid.mean()), n_bleeding=n_bleeding,
-            reason=reason,
+            invalid_depth_fraction=float(1.0 - layers.band_valid[seen].mean()) if seen.any() else 0.0,
+            n_bleeding=n_bleeding, n_hidden=n_band - int(seen.sum()), reason=reason,
         )
 
+    n_hidden = n_band - int(seen.sum())
     if n_valid == 0:
-        return _result(REASON_BLEEDING if n_bleeding else REASON_NO_TOOL_DEPTH)
+        return _result(REASON_BLEEDING if n_bleeding else REASON_HIDDEN if n_hidden else REASON_NO_TOOL_DEPTH)
     scores = _Scores(layers, band_d, params.n2)
     band_s = scores.score(params.tau_patch)
     n_cand = int(np.isfinite(band_s).sum())
     if n_cand == 0:
-        return _result(REASON_BLEEDING if n_bleeding else REASON_NO_CANDIDATE, band_s=band_s)
+        return _result(REASON_BLEEDING if n_bleeding else REASON_HIDDEN if n_hidden else REASON_NO_CANDIDATE,
+                       band_s=band_s)
     best, in_window = _patch_window(layers, band_d, band_s, scores.half2)
     distance = float(np.median(band_d[in_window]))
     cx, cy = int(bx[best]) + x0, int(by[best]) + y0

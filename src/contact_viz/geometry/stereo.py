@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from contact_viz.geometry.occlusion import half_occluded
 from contact_viz.params import check_fields, checked
 
 __all__ = [
@@ -53,6 +54,7 @@ _MODES = {
 _MAX_CODE = np.iinfo(np.uint16).max  # largest value a 16-bit PNG holds
 _MIN_BLOCK = 3  # smallest matching block side, px
 _BLOCK_STEP = 2  # block sides are odd
+_PLAIN_BLOCK = 3  # plain whole-frame matching's block side when no block size is given, px (SGBMParams)
 
 
 # --------------------------------------------------------------------------------------------
@@ -64,9 +66,16 @@ _BLOCK_STEP = 2  # block sides are odd
 class SGBMParams:
     """Semi-global matching settings; ``None`` fields are sized from the image width by :meth:`resolve`."""
 
-    # disparity search range, px (multiple of 16); None = from the width
+    # disparity search range, px at the matching resolution (multiple of 16); None = from the calibration (resolve)
     num_disparities: int | None = checked(None, ge=SUBPIXEL, lt=_MAX_CODE // SUBPIXEL + 1, multiple_of=SUBPIXEL)
-    # when num_disparities is None: range = this * width (rounded up to 16)
+    # the nearest depth a scene can have, m: with a calibration, the search reaches fx * baseline / this (minus
+    # the rectified cameras' cx offset), px at full resolution (15 mm: 301 px for a da Vinci endoscope at 1080p,
+    # fx 1103 px and 4.1 mm baseline; 381 px for the synthetic camera at 1080p, fx 1144 px and 5 mm)
+    min_depth_m: float = checked(0.015, gt=0)
+    # with a calibration, the search reaches at most this share of the matching width (the rest of a view
+    # then sees so little of a point that near: Middlebury's 0.19 m baseline would otherwise search 12,800 px)
+    max_disparity_fraction: float = checked(0.25, gt=0, le=1)
+    # without a calibration (resolve() given no fx and baseline): range = this * width (rounded up to 16)
     disparity_range_fraction: float = checked(0.125, gt=0, le=1)
     min_disparity: int = 0  # smallest disparity searched, px
     block_size: int | None = checked(None, ge=1, odd=True)  # matching block side, px (odd, >= 3); None = from the width
@@ -74,6 +83,10 @@ class SGBMParams:
     # (128: 5 px at 640, 15 px at 1920; chosen, with uniqueness 15, on the synthetic study's training
     # sessions, band pixels within 3 mm of the true depth; Middlebury within 2 px 95.8% -> 94.8%: docs/depth.md)
     width_per_block_px: float = checked(128.0, gt=0)
+    # block side of plain whole-frame matching (sgbm_disparity: no instrument in view, no mask or an empty one),
+    # px; None = block_size when that is given, else 3 (Middlebury within 2 px 96.0% against 94.8% with the
+    # width rule's 7 px; synthetic tissue within 3 mm 95.8% against 95.7% with 5 px: docs/depth.md)
+    plain_block_size: int | None = checked(None, ge=1, odd=True)
     p1_factor: int = checked(8, gt=0)  # P1 = p1_factor * channels * block^2: penalty for a 1 px disparity change
     p2_factor: int = 32  # P2 = p2_factor * channels * block^2: penalty for larger disparity jumps (> p1_factor)
     uniqueness_ratio: int = 15  # best cost must beat the second best by this margin, %
@@ -100,6 +113,9 @@ class SGBMParams:
     tool_mask_aware: bool = True  # match the tissue with the tool removed (inpainted) from both views
     tool_margin_px: int = checked(1, ge=0)  # the tool region removed grows by this in both views, px
     occlusion_check: bool = True  # drop left pixels whose match lies behind the tool in the right view
+    # no depth on the half-occluded strip left of each tool, which the right camera cannot see, whatever SGBM put
+    # there (geometry.occlusion.half_occluded: the tissue's disparity read beyond the strip)
+    half_occluded_strip: bool = True
     # also inpaint, right of the tool in the right view, the tissue only the right camera sees (_hidden_strips)
     hidden_strip: bool = True
     strip_probe_near_px: int = checked(8, ge=1)  # the tissue's disparity beside the tool is read from this far ...
@@ -119,26 +135,46 @@ class SGBMParams:
                 f"SGBMParams needs p1_factor < p2_factor, got {self.p1_factor} and {self.p2_factor}"
             )
 
-    def resolve(self, width_px: int) -> SGBMParams:
-        """These parameters with num_disparities and block_size fixed for images ``width_px`` wide.
+    def resolve(self, width_px: int, fx_px: float | None = None, baseline_m: float | None = None,
+                disparity_offset_px: float = 0.0) -> SGBMParams:
+        """These parameters with num_disparities, block_size, plain_block_size and downscale fixed for images
+        ``width_px`` wide.
 
-        The sizes refer to the matching resolution (width / downscale).
+        The sizes refer to the matching resolution (width / downscale). The search range, unless given:
+        with the calibration (``fx_px`` at this width and ``baseline_m``; ``disparity_offset_px`` = cx_right -
+        cx_left of the rectified cameras), the disparity of a point at ``min_depth_m``, fx * baseline /
+        min_depth - offset, scaled to the matching resolution and capped at ``max_disparity_fraction`` of
+        its width, the smallest multiple of 16 reaching it from ``min_disparity``; without it,
+        ``disparity_range_fraction`` of the matching width.
         """
         downscale = self.downscale if self.downscale is not None else max(1, -(-int(width_px) // self.match_width_px))
         width = max(1, int(width_px) // downscale)
         num = self.num_disparities
-        if num is None:
+        if num is None and (fx_px is None) != (baseline_m is None):
+            raise ValueError("SGBMParams.resolve needs both fx_px and baseline_m, or neither")
+        if num is None and fx_px is not None:
+            if not (np.isfinite(fx_px) and fx_px > 0 and np.isfinite(baseline_m) and baseline_m > 0
+                    and np.isfinite(disparity_offset_px)):
+                raise ValueError(f"SGBMParams.resolve: fx_px and baseline_m must be positive and the offset finite, "
+                                 f"got {fx_px!r}, {baseline_m!r} and {disparity_offset_px!r}")
+            largest = (fx_px * baseline_m / self.min_depth_m - disparity_offset_px) / downscale
+            largest = min(largest, self.max_disparity_fraction * width)
+            num = max(SUBPIXEL, -(-(int(np.floor(largest)) + 1 - self.min_disparity) // SUBPIXEL) * SUBPIXEL)
+        elif num is None:
             num = max(SUBPIXEL, -(-int(np.ceil(width * self.disparity_range_fraction)) // SUBPIXEL) * SUBPIXEL)
         block = self.block_size
         if block is None:
             block = max(_MIN_BLOCK, int(round(width / self.width_per_block_px)))
             block += 1 - block % _BLOCK_STEP  # next odd number
+        plain = self.plain_block_size
+        if plain is None:
+            plain = self.block_size if self.block_size is not None else _PLAIN_BLOCK
         if (num + max(self.min_disparity, 0)) * downscale * SUBPIXEL >= _MAX_CODE:
             raise ValueError(
                 f"SGBMParams: search range {num} px x downscale {downscale} is too large "
                 "(disparities must stay below 4096 px)"
             )
-        return replace(self, num_disparities=num, block_size=block, downscale=downscale)
+        return replace(self, num_disparities=num, block_size=block, plain_block_size=plain, downscale=downscale)
 
 
 # --------------------------------------------------------------------------------------------
@@ -213,13 +249,14 @@ def sgbm_disparity(left_rgb: np.ndarray, right_rgb: np.ndarray, params: SGBMPara
     """Disparity of a rectified pair by semi-global matching.
 
     ``left_rgb``, ``right_rgb``: (H, W, 3) or (H, W) uint8, rectified (corresponding pixels on the
-    same row, right pixel = left pixel - disparity). Returns (H, W) float32 disparity in px
+    same row, right pixel = left pixel - disparity); blocks of ``plain_block_size``; ``params`` resolved
+    with the calibration (:meth:`SGBMParams.resolve`) search from it, others a share of the width. Returns (H, W) float32 disparity in px
     (multiples of 1/16 px, times ``downscale``), NaN where no reliable match was found; with
     ``median_px``, the median of the matched disparities around each (:func:`median_by_region`).
     """
     left, right = _as_pair(left_rgb, right_rgb)
     p = params.resolve(left.shape[1])
-    disparity = _sgbm(left, right, p)
+    disparity = _sgbm(left, right, replace(p, block_size=p.plain_block_size))
     return median_by_region(disparity, [np.ones(disparity.shape, bool)], p.median_px)
 
 
@@ -379,7 +416,10 @@ def masked_sgbm_disparity(
        disparity and drag it 2-4 px over the tissue right of the tool (docs/depth.md).
     4. Result: step 1 on the (left) tool, step 3 elsewhere; with ``occlusion_check``, a left
        pixel whose match falls in the right view's inpainted region (hidden behind the tool in the
-       right view: no depth can be measured there; or in the strip, where it came out too wide) is NaN.
+       right view: no depth can be measured there; or in the strip, where it came out too wide) is NaN;
+       with ``half_occluded_strip``, so is every pixel of the strip left of the tool that the right
+       camera cannot see (:func:`contact_viz.geometry.occlusion.half_occluded`), whatever disparity it
+       got (the tool's, or made-up tissue whose match does not fall behind the tool).
     5. The median (``median_px``) of the tool and of the tissue apart (:func:`median_by_region`).
        SGBM's isolated mismatches beside the tool are what the patch's minimum finds; on the
        study's training sessions the median brings the band within 3 mm from 91.0% to 92.4%.
@@ -420,6 +460,8 @@ def masked_sgbm_disparity(
         hidden = np.zeros(ys.shape, bool)
         hidden[inside] = inpaint_right[ys[inside], col[inside]]  # behind the tool, or inpainted: not measured
         disparity[ys[hidden], xs[hidden]] = np.nan
+    if p.half_occluded_strip:
+        disparity[half_occluded(disparity, tool)] = np.nan
     return median_by_region(disparity, [tool, ~tool], p.median_px)
 
 

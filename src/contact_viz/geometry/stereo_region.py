@@ -8,14 +8,16 @@ frame. :func:`region_sgbm_disparity` therefore
    ``match_width_px``, 960: 1920 px wide -> 960, 1280 -> 640; full-resolution matching of the
    weakly textured tissue loses most matches beside the tool, docs/depth.md);
 2. runs a **coarse** pass over the whole frame at ``coarse_width_px`` (plain SGBM with the
-   left-right check and the median): it feeds the 3D cloud and the depth pane, and gives each
-   fine tile its disparity search range;
+   left-right check and the median): it feeds the 3D cloud and the depth pane, and gives each fine
+   tile its disparity search range (the whole range: SGBMParams.resolve, from the calibration);
 3. matches the **region** (the tools and the background within ``region_px`` of them) with the
-   mask-aware matcher (:func:`masked_sgbm_disparity`) in horizontal tiles of ``tile_rows_px``
-   rows, each searching only the coarse disparities found in it +- ``range_margin_px``;
+   mask-aware matcher (:func:`masked_sgbm_disparity`, which also leaves the half-occluded strip
+   without depth) in horizontal tiles of ``tile_rows_px`` rows, each searching only the coarse
+   disparities found in it +- ``range_margin_px``, within the whole range;
 4. upsamples to the image: inside the region the fine disparity (no value crosses the tool's
    edge: a pixel whose tool/background class differs between the image and the matching
-   resolution is NaN), outside it the coarse one.
+   resolution is NaN), outside it the coarse one; no depth on the half-occluded strips left of the
+   tools (geometry.occlusion), found again on the whole rows.
 
 :class:`RegionDisparity` says which pixels are fine; the patch never reads a coarse one, since
 the region holds everything it reads (tested).
@@ -28,6 +30,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from contact_viz.geometry.occlusion import half_occluded
 from contact_viz.geometry.stereo import (
     SUBPIXEL,
     SGBMParams,
@@ -170,6 +173,8 @@ def region_sgbm_disparity(
     fine = _split_at_edge(_grow(fine_small, shape, n), tool, small_tool, n)
     out = _grow(coarse, shape, n)
     out[region] = fine[region]
+    if p.half_occluded_strip:  # again on whole rows at the image's pixels: a tile's crop may hold no tissue
+        out[half_occluded(out, tool)] = np.nan  # beyond a wide strip; this also clears the coarse pass's strip
     return RegionDisparity(out, region)
 
 

@@ -14,13 +14,17 @@ A session holds exactly one of these (looked up in this order; the first found i
     rectification matrix the identity, or either file has ``rectified: 1``.
 ``stereo.yaml|yml|xml`` or ``calibration.yaml|yml|xml``
     An OpenCV FileStorage stereo calibration (what ``cv2.stereoCalibrate`` gives):
-    ``K1``/``M1``/``cameraMatrix1``, ``D1``/``distCoeffs1``, the same with 2, ``R`` and ``T``
-    (right camera from left: x_right = R x_left + T), optional ``P1`` and ``P2`` (rectified
+    ``K1``/``M1``/``M_l``/``cameraMatrix1``, ``D1``/``D_l``/``distCoeffs1``, the same with 2 (``_r``),
+    ``R`` and ``T`` (right camera from left: x_right = R x_left + T), optional ``P1`` and ``P2`` (rectified
     3x4 projections), ``image_width`` and ``image_height`` (or ``image_size`` = [w, h]),
     ``translation_unit`` (``m`` default, ``cm`` or ``mm``) and ``rectified`` (0/1). With
     ``rectified: 1`` (or no R and T) the images are taken as rectified and P1/P2 (else K1 and
     |T|) give K and the baseline; otherwise they are rectified on load with ``cv2.stereoRectify``
     (zero-disparity principal points, no black border) and ``cv2.initUndistortRectifyMap``.
+    Published calibrations often hold an R that is a rotation only to about 1e-3 (printed with few
+    digits, or estimated without the constraint): an R whose entries all lie within
+    ``ROTATION_TOLERANCE`` of the nearest rotation's is replaced by that rotation (the SVD polar
+    factor U V^T), with one warning naming the file and the deviation; a farther one is refused.
 
 Anything wrong (zero or negative baseline, a camera matrix that is not upper-triangular
 [fx s cx; 0 fy cy; 0 0 1], a calibration for another image size, left and right rectified
@@ -31,13 +35,14 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from contact_viz.errors import SessionError
+from contact_viz.errors import SessionError, SessionWarning
 
 __all__ = [
     "CALIBRATION_FILES",
@@ -49,6 +54,7 @@ __all__ = [
     "read_k_txt",
     "read_opencv_stereo",
     "read_ros_camera_info",
+    "rotation_deviation",
 ]
 
 # Calibration file names, in lookup order (a pair for ROS camera_info).
@@ -59,6 +65,9 @@ RECTIFY_ALPHA = 0.0  # cv2.stereoRectify alpha: 0 keeps only valid pixels (no bl
 _REL_TOL = 1e-6  # relative tolerance when comparing calibration numbers that must be equal
 _UNIT_TO_M = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # OpenCV translation units, metres per unit
 _TRUE = ("1", "true", "yes", "on")  # spellings of a true ``rectified`` flag
+# R's deviation from a rotation = the largest |R - Q| entry, Q the nearest rotation (rotation_deviation):
+ROTATION_EXACT = 1e-6  # at most this: R is taken as it is (a rotation written with float32 digits), -
+ROTATION_TOLERANCE = 1e-3  # at most this: replaced by Q with one warning (published files: ~1e-3); beyond: refused, -
 
 
 # --------------------------------------------------------------------------------------------
@@ -199,6 +208,34 @@ def _check_principal_point(path: Path, K: np.ndarray, image_size: tuple[int, int
             path, f"image size mismatch: the principal point ({K[0, 2]:g}, {K[1, 2]:g}) px lies outside the "
             f"{width}x{height} px left images; is the calibration for another resolution?"
         )
+
+
+def rotation_deviation(R: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """(Q, deviation): the rotation nearest the 3x3 ``R`` in the Frobenius norm (the polar factor U V^T of
+    R = U S V^T, with det +1) and the largest |R - Q| entry. Q is None when R's determinant is not positive
+    (the nearest orthogonal matrix is a reflection: no rotation is near R)."""
+    U, _, Vt = np.linalg.svd(R)
+    Q = U @ Vt
+    if np.linalg.det(R) <= 0 or np.linalg.det(Q) <= 0:
+        return None, math.inf
+    return Q, float(np.abs(R - Q).max())
+
+
+def _check_rotation(path: Path, R: np.ndarray) -> np.ndarray:
+    """``R`` if it is a rotation (to ROTATION_EXACT), the nearest rotation (with one warning) if it is within
+    ROTATION_TOLERANCE of one, else SessionError naming the file."""
+    Q, deviation = rotation_deviation(R)
+    orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
+    numbers = (f"its entries differ from the nearest rotation's by up to {deviation:.2g}, R R^T from the identity "
+               f"by up to {orthogonality:.2g}, det {np.linalg.det(R):.6g}")
+    if Q is None or deviation > ROTATION_TOLERANCE:
+        raise SessionError(path, f"expected 'R' to be a rotation matrix (within {ROTATION_TOLERANCE:g} of one), found "
+                                 f"{R.ravel().tolist()} ({numbers if Q is not None else 'det <= 0: a reflection'})")
+    if deviation <= ROTATION_EXACT:
+        return R
+    warnings.warn(f"{path}: 'R' is not exactly a rotation ({numbers}; tolerated up to {ROTATION_TOLERANCE:g}): "
+                  "the nearest rotation is used", SessionWarning, stacklevel=3)
+    return Q
 
 
 def read_only(array: np.ndarray, dtype: np.dtype | type | None = None) -> np.ndarray:
@@ -462,13 +499,13 @@ def read_opencv_stereo(path: str | Path, image_size: tuple[int, int] | None = No
     declared = _declared_size(path, storage)
     _check_image_size(path, declared, image_size)
     size = declared or image_size
-    K1 = _matrix(path, storage, ("K1", "M1", "cameraMatrix1"), (3, 3))
-    K2 = _matrix(path, storage, ("K2", "M2", "cameraMatrix2"), (3, 3), required=False)
+    K1 = _matrix(path, storage, ("K1", "M1", "M_l", "cameraMatrix1"), (3, 3))
+    K2 = _matrix(path, storage, ("K2", "M2", "M_r", "cameraMatrix2"), (3, 3), required=False)
     _check_camera_matrix(path, K1, "K1")
     if K2 is not None:
         _check_camera_matrix(path, K2, "K2")
-    D1 = _matrix(path, storage, ("D1", "distCoeffs1"), None, required=False)
-    D2 = _matrix(path, storage, ("D2", "distCoeffs2"), None, required=False)
+    D1 = _matrix(path, storage, ("D1", "D_l", "distCoeffs1"), None, required=False)
+    D2 = _matrix(path, storage, ("D2", "D_r", "distCoeffs2"), None, required=False)
     R = _matrix(path, storage, ("R",), (3, 3), required=False)
     T = _matrix(path, storage, ("T",), None, required=False)
     P1 = _matrix(path, storage, ("P1",), (3, 4), required=False)
@@ -511,13 +548,12 @@ def read_opencv_stereo(path: str | Path, image_size: tuple[int, int] | None = No
         return StereoCalibration(calibration, (path,), "opencv", declared, None)
 
     if K2 is None:
-        raise SessionError(path, "missing: expected 'K2' (or 'M2', 'cameraMatrix2') to rectify the right images")
+        raise SessionError(path, "missing: expected 'K2' (or 'M2', 'M_r', 'cameraMatrix2') to rectify the right images")
     if size is None:
         raise SessionError(path, "missing: expected image_width and image_height (px) to rectify the images")
     baseline_m = float(np.linalg.norm(T)) * metres
     _check_baseline(path, baseline_m, "|T|")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
-        raise SessionError(path, f"expected 'R' to be a rotation matrix, found {R.ravel().tolist()}")
+    R = _check_rotation(path, R)
     D1 = np.zeros(5) if D1 is None else D1.ravel()
     D2 = np.zeros(5) if D2 is None else D2.ravel()
     height, width = size

@@ -592,7 +592,9 @@ def open_session(
                                                 for files in (mask_files, right_files, source.files))
     sgbm_cache = None
     if source.kind == "sgbm":
-        resolved = (sgbm_params or SGBMParams()).resolve(image_size[1])
+        cal = stereo.calibration  # the search range from the calibration and SGBMParams.min_depth_m
+        resolved = (sgbm_params or SGBMParams()).resolve(image_size[1], fx_px=cal.fx, baseline_m=cal.baseline_m,
+                                                         disparity_offset_px=cal.disparity_offset_px)
         sgbm_cache = DisparityCache.for_session(root, stereo.files, resolved, cache_dir)
     note = f"{root.name}: {source.note}; {stereo.describe()}"
     log.info(note)

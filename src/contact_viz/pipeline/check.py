@@ -3,11 +3,14 @@
 :func:`check_session` reads every frame (mask, whole depth map, grey left and right images),
 computes each instrument's patch and measurements (:mod:`contact_viz.checks.frame`), spread over
 ``processes`` processes, then runs the checks in frame order (:class:`FrameChecker`, the same
-object the viewer uses) and the session checks (force lag, frame times). The result is a
+object the viewer uses) and the session checks (force lag, frame times, and whether left and right
+are rectified: :func:`rectification_offset`). The result is a
 :class:`CheckReport`: which checks fired on which frame ranges, and with several instruments (object
 ids) on which instrument too (the table gets a ``tool`` column, "-" for a check of the whole frame;
 the JSON an ``instruments`` list and per check ``tools``). A session of one instrument (id 1, or a
-binary mask) prints as before.
+binary mask) prints as before. Frames are named by their stems (the files' names in left/):
+``000020-000022`` for a run of consecutive numbers (:func:`contact_viz.console.frames_text`); the JSON keeps
+the frame indices (``ranges``) beside the stems (``stem_ranges``).
 """
 
 from __future__ import annotations
@@ -25,13 +28,16 @@ from contact_viz.checks.frame import FrameMeasures, ToolMeasures, analysis_step,
 from contact_viz.checks.params import DiagnosticParams
 from contact_viz.checks.rules import (CHECKS, SESSION_CHECKS, DepthSource, FrameChecker, PatchNumbers, fired_ranges,
                                      patch_place)
+from contact_viz.checks.rectification import VerticalOffset, sample_frames, vertical_offset
 from contact_viz.checks.session import ForceLag, force_lag, frame_time_problems
+from contact_viz.console import frame_name, frames_text, stem_runs
 from contact_viz.errors import SessionError
 from contact_viz.io.decoders import JPEG_REDUCTIONS, read_jpeg_reduced
 from contact_viz.io.session import JPEG_SUFFIXES, BadFrame, Session, open_session
 from contact_viz.params import PatchParams
 
-__all__ = ["CheckReport", "FrameRecord", "check_session", "grey_step", "load_grey", "measure_session_frame"]
+__all__ = ["CheckReport", "FrameRecord", "check_session", "grey_step", "load_grey", "measure_session_frame",
+           "rectification_offset"]
 
 CHUNK_FRAMES = 8  # frames a process claims at a time, frames
 
@@ -67,6 +73,27 @@ def load_grey(session: Session, side: str, index: int, step: int = 1, rgb: np.nd
     return shrink_grey(rgb, step)
 
 
+def rectification_offset(session: Session, params: DiagnosticParams = DiagnosticParams(),
+                         indices=None) -> VerticalOffset | None:
+    """The vertical offset between the left and right images of ``params.rectification_frames`` frames evenly
+    spaced over ``indices`` (default: every frame), read as the checks read them (rectified like the session)
+    and shrunk to at most ``params.rectification_width_px`` wide (:mod:`contact_viz.checks.rectification`).
+    None without right images, or with too few features matched; a frame whose image cannot be read is left
+    out (its own check reports it)."""
+    if not session.has_right:
+        return None
+    height, width = session.image_size
+    step = max(1, -(-width // params.rectification_width_px))
+    pairs = []
+    for index in sample_frames(range(len(session)) if indices is None else indices, params.rectification_frames):
+        (left, _), (right, _) = (_grey_or_problem(session, side, index, step) for side in ("left", "right"))
+        if left is not None and right is not None:
+            pairs.append((index, left, right))
+    if not pairs:
+        return None
+    return vertical_offset(pairs, params, scale_px=height / pairs[0][1].shape[0])
+
+
 def _grey_or_problem(session: Session, side: str, index: int, step: int) -> tuple[np.ndarray | None, str | None]:
     try:
         return load_grey(session, side, index, step), None
@@ -89,7 +116,7 @@ class FrameRecord:
 def measure_session_frame(session: Session, index: int, patch_params: PatchParams, params: DiagnosticParams,
                           evidence: bool = False) -> FrameRecord:
     """Read frame ``index`` of ``session`` and measure it (every instrument's patch and measurements)."""
-    from contact_viz.pipeline.extract import frame_patches
+    from contact_viz.pipeline.extract import session_frame_patches
 
     frame = session.load_frame(index, layers=("mask", "depth"))
     if isinstance(frame, BadFrame):
@@ -97,7 +124,7 @@ def measure_session_frame(session: Session, index: int, patch_params: PatchParam
     step = grey_step(session, params)
     (left, left_problem), (right, right_problem) = (_grey_or_problem(session, side, index, step)
                                                     for side in ("left", "right"))
-    patch, patches = frame_patches(frame, patch_params, session.object_ids)
+    patch, patches = session_frame_patches(session, frame, patch_params)
     record = measure_loaded_frame(session, frame, patch, left, right, params, evidence, tool_patches=patches)
     problem = left_problem or right_problem
     return record if problem is None else replace(record, image_problem=problem)
@@ -169,6 +196,8 @@ class CheckReport:
     # also reported per instrument: check code -> object id -> (first, last) frame ranges it fired on
     instruments: tuple[int, ...] = ()
     tool_fired: dict[str, dict[int, list[tuple[int, int]]]] = field(default_factory=dict)
+    stems: tuple[str, ...] = ()  # the session's frame stems (frame index -> stem); () = name frames by index
+    rectification: VerticalOffset | None = None  # left against right (not_rectified); None = not measured
 
     @property
     def several(self) -> bool:
@@ -190,7 +219,15 @@ class CheckReport:
                 frames.update(range(a, b + 1))
         return len(frames)
 
+    def frames_text(self, ranges: list[tuple[int, int]], max_runs: int) -> str:
+        """(first, last) frame index ranges as stems: ``000020-000022, 000024`` (console.frames_text)."""
+        return frames_text(ranges, self.stems, max_runs)
+
+    def _stem_ranges(self, ranges) -> list[list[str]]:
+        return [list(run) for run in stem_runs(ranges, self.stems)]
+
     def to_dict(self) -> dict:
+        rect = self.rectification
         lag = None if self.force_lag is None else {
             "lag_frames": self.force_lag.lag_frames, "lag_s": round(self.force_lag.lag_s, 4),
             "correlation": round(self.force_lag.correlation, 4),
@@ -201,20 +238,28 @@ class CheckReport:
             "session": self.session, "path": self.path, "n_frames": self.n_frames,
             "flagged_frames": self.flagged_frames,
             "checks": {code: {"frames": self.counts.get(code, 0), "ranges": [list(r) for r in self.fired.get(code, [])],
+                              "stem_ranges": self._stem_ranges(self.fired.get(code, [])),
                               "measures": (CHECKS.get(code) or SESSION_CHECKS[code])[0],
                               "likely_cause": self.likely_causes(code)[0],
                               **({"causes": self.causes[code]} if len(self.causes.get(code, {})) > 1 else {}),
                               **({"first_message": self.messages[code]} if code in self.messages else {}),
                               **({"tools": {str(k): {"frames": sum(b - a + 1 for a, b in r),
-                                                     "ranges": [list(x) for x in r]}
+                                                     "ranges": [list(x) for x in r],
+                                                     "stem_ranges": self._stem_ranges(r)}
                                             for k, r in self.tool_fired[code].items()}}
                                  if self.several and code in self.tool_fired else {})}
                        for code in (*CHECKS, *SESSION_CHECKS)},
             **({"instruments": list(self.instruments)} if self.several else {}),
             "force_lag": lag,
+            "rectification": None if rect is None else {
+                "vertical_offset_px": round(rect.offset_px, 3), "matches": rect.matches,
+                "frames": [frame_name(i, self.stems) for i in rect.frames],
+                "frame_offsets_px": [None if math.isnan(v) else round(v, 3) for v in rect.frame_offsets_px],
+                "fired": rect.fired},
             "unreadable_images": None if self.unreadable_images is None else {
                 "frames": len(self.unreadable_images[0]),
                 "ranges": [list(r) for r in fired_ranges(self.unreadable_images[0])],
+                "stem_ranges": self._stem_ranges(fired_ranges(self.unreadable_images[0])),
                 "first_message": self.unreadable_images[1]},
             "params": self.params.to_dict(),
             "contact_viz_version": __version__,
@@ -244,8 +289,9 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
     else:
         records = run_chunks(task, n, chunk_size=CHUNK_FRAMES, processes=processes)
     instruments = record_instruments(records)
+    stems = tuple(session.stems)
     frames, causes, by_tool = fired_frames(records, params, session.image_size[1], session.depth_source,
-                                           several=several_instruments(instruments))
+                                           several=several_instruments(instruments), stems=stems)
     signal = np.array([r.signal for r in records], dtype=np.float64)
     suspect = np.zeros(n, bool)
     for idx, _ in frames.values():
@@ -257,18 +303,24 @@ def check_session(session_dir, *, params: DiagnosticParams | None = None, cache_
                                                f"{lag.zero_lag_correlation:.2f} at 0)")
     gaps = frame_time_problems(session.timestamps_s, params)
     if gaps:
-        frames["frame_times"] = (gaps, f"{len(gaps)} frame(s) with a time step <= 0 or a gap")
+        frames["frame_times"] = (gaps, f"{len(gaps)} frame(s) with a time step <= 0 or a gap, first at frame "
+                                       f"{frame_name(gaps[0], stems)}")
+    rectification = rectification_offset(session, params)
+    if rectification is not None and rectification.fired:
+        frames["not_rectified"] = (list(range(n)), rectification.message())
     return CheckReport(
         session=session.name, path=str(session.root), n_frames=n,
         fired={code: fired_ranges(idx) for code, (idx, _) in frames.items()},
         counts={code: len(idx) for code, (idx, _) in frames.items()},
         force_lag=lag, params=params, elapsed_s=time.perf_counter() - started,
         messages={code: msg for code, (_, msg) in frames.items()},
-        unreadable_images=_unreadable_images(records),
+        unreadable_images=_unreadable_images(records, stems),
         causes=causes,
         instruments=instruments,
         tool_fired={code: {k: fired_ranges(idx) for k, idx in sorted(tools.items())}
                     for code, tools in by_tool.items()},
+        stems=stems,
+        rectification=rectification,
     )
 
 
@@ -289,31 +341,34 @@ def record_instruments(records: list[FrameRecord]) -> tuple[int, ...]:
     return tuple(sorted(ids))
 
 
-def _unreadable_images(records: list[FrameRecord]) -> tuple[list[int], str] | None:
+def _unreadable_images(records: list[FrameRecord], stems: tuple[str, ...] = ()) -> tuple[list[int], str] | None:
     """The frames with an unreadable image and the first one's message (CheckReport.unreadable_images)."""
     bad = [r for r in records if r.image_problem]
-    return None if not bad else ([r.index for r in bad], f"frame {bad[0].index}: {bad[0].image_problem}")
+    return None if not bad else ([r.index for r in bad],
+                                 f"frame {frame_name(bad[0].index, stems)}: {bad[0].image_problem}")
 
 
 def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_width: int,
-                 depth_source: DepthSource = "depth", several: bool | None = None
+                 depth_source: DepthSource = "depth", several: bool | None = None, stems: tuple[str, ...] = ()
                  ) -> tuple[dict, dict[str, dict[str, int]], dict[str, dict[int, list[int]]]]:
     """Run the frame checks over ``records`` in order: (code -> (frame indices, first message),
     code -> likely cause -> frames, most frames first, code -> object id -> frame indices).
     ``depth_source``: the session's (``Session.depth_source``), for the wording of the causes;
-    ``several``: the messages name the instrument (FrameChecker)."""
-    checker = FrameChecker(params, image_width, depth_source, several=several)
+    ``several``: the messages name the instrument (FrameChecker); ``stems``: the messages name frames by them."""
+    checker = FrameChecker(params, image_width, depth_source, several=several, stems=stems)
     out: dict[str, tuple[list[int], str]] = {}
     causes: dict[str, dict[str, int]] = {}
     by_tool: dict[str, dict[int, list[int]]] = {}
     for record in records:
         if record.measures is None:
-            out.setdefault("bad_frame", ([], f"frame {record.index}: {record.bad_reason}"))[0].append(record.index)
+            out.setdefault("bad_frame", ([], f"frame {frame_name(record.index, stems)}: {record.bad_reason}")
+                           )[0].append(record.index)
             checker.reset_previous()
             continue
         fired, _ = checker.check(record.index, record.measures, record.patch)
         for diagnostic in fired:
-            frames = out.setdefault(diagnostic.code, ([], f"frame {diagnostic.index}: {diagnostic.message}"))[0]
+            frames = out.setdefault(diagnostic.code, ([], f"frame {frame_name(diagnostic.index, stems)}: "
+                                                          f"{diagnostic.message}"))[0]
             if not frames or frames[-1] != diagnostic.index:  # several instruments: a frame counts once
                 frames.append(diagnostic.index)
                 named = causes.setdefault(diagnostic.code, {})
@@ -327,7 +382,8 @@ def fired_frames(records: list[FrameRecord], params: DiagnosticParams, image_wid
 
 
 def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
-    """The per-session table `contact-viz check` prints: one line per check that fired."""
+    """The per-session table `contact-viz check` prints: one line per check that fired (its frames by stem), and
+    the line of a pair that is not rectified."""
     name = report.session if Path(report.path).name == report.session else f"{report.session} ({report.path})"
     head = (f"{name}: {report.n_frames} frames, {report.flagged_frames} flagged "
             f"({report.elapsed_s:.1f} s)")
@@ -343,45 +399,47 @@ def report_table(report: CheckReport, max_ranges: int = 6) -> list[str]:
         return lines
     width = max(len(c) for c in fired)
     if report.several:
-        return lines + _tool_table(report, fired, width, max_ranges)
-    lines.append(f"  {'check':{width}s}  frames  ranges                          likely cause")
-    for code in fired:
-        ranges = report.fired[code]
-        text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in ranges[:max_ranges])
-        if len(ranges) > max_ranges:
-            text += f", ... ({len(ranges)} ranges)"
-        if code == "force_lag" and report.force_lag is not None:
-            text = f"all ({report.force_lag.lag_frames:+d} frames, {report.force_lag.lag_s:+.3f} s)"
-        named = report.likely_causes(code)
-        cause = named[0] if len(named) == 1 else "; ".join(f"{c} ({report.causes[code][c]} frame(s))" for c in named)
-        lines.append(f"  {code:{width}s}  {report.counts[code]:6d}  {text:30s}  {cause}")
+        lines += _tool_table(report, fired, width, max_ranges)
+    else:
+        texts = {code: _ranges_text(report, code, report.fired[code], max_ranges) for code in fired}
+        column = max(30, *(len(t) for t in texts.values()))
+        lines.append(f"  {'check':{width}s}  frames  {'ranges':{column}s}  likely cause")
+        for code in fired:
+            lines.append(f"  {code:{width}s}  {report.counts[code]:6d}  {texts[code]:{column}s}  {_cause(report, code)}")
+    if "not_rectified" in fired:
+        lines.append(f"  {report.messages['not_rectified']}")
     return lines
 
 
-def _ranges_text(ranges: list[tuple[int, int]], max_ranges: int) -> str:
-    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in ranges[:max_ranges])
-    if len(ranges) > max_ranges:
-        text += f", ... ({len(ranges)} ranges)"
-    return text
+def _cause(report: CheckReport, code: str) -> str:
+    named = report.likely_causes(code)
+    return named[0] if len(named) == 1 else "; ".join(f"{c} ({report.causes[code][c]} frame(s))" for c in named)
+
+
+def _ranges_text(report: CheckReport, code: str, ranges: list[tuple[int, int]], max_ranges: int) -> str:
+    """The ranges column: the frames by stem, or for a check of the whole session what it measured."""
+    if code == "force_lag" and report.force_lag is not None:
+        return f"all ({report.force_lag.lag_frames:+d} frames, {report.force_lag.lag_s:+.3f} s)"
+    if code == "not_rectified" and report.rectification is not None:
+        return f"all ({abs(report.rectification.offset_px):.1f} px vertical offset)"
+    return report.frames_text(ranges, max_ranges)
 
 
 def _tool_table(report: CheckReport, fired: list[str], width: int, max_ranges: int) -> list[str]:
     """report_table's rows for a session of several instruments: one per check and instrument it fired on
     (tool "-": a check of the whole frame or session)."""
-    lines = [f"  {'check':{width}s}  tool  frames  ranges                          likely cause"]
+    rows = []  # (code, tool, frames, ranges text)
     for code in fired:
-        named = report.likely_causes(code)
-        cause = named[0] if len(named) == 1 else "; ".join(f"{c} ({report.causes[code][c]} frame(s))" for c in named)
         per_tool = report.tool_fired.get(code)
         if not per_tool:
-            text = _ranges_text(report.fired[code], max_ranges)
-            if code == "force_lag" and report.force_lag is not None:
-                text = f"all ({report.force_lag.lag_frames:+d} frames, {report.force_lag.lag_s:+.3f} s)"
-            lines.append(f"  {code:{width}s}  {'-':>4s}  {report.counts[code]:6d}  {text:30s}  {cause}")
-            continue
-        for tool, ranges in per_tool.items():
-            frames = sum(b - a + 1 for a, b in ranges)
-            lines.append(f"  {code:{width}s}  {tool:4d}  {frames:6d}  {_ranges_text(ranges, max_ranges):30s}  {cause}")
+            rows.append((code, "-", report.counts[code], _ranges_text(report, code, report.fired[code], max_ranges)))
+        for tool, ranges in (per_tool or {}).items():
+            rows.append((code, str(tool), sum(b - a + 1 for a, b in ranges),
+                         _ranges_text(report, code, ranges, max_ranges)))
+    column = max(30, *(len(row[3]) for row in rows))
+    lines = [f"  {'check':{width}s}  tool  frames  {'ranges':{column}s}  likely cause"]
+    for code, tool, frames, text in rows:
+        lines.append(f"  {code:{width}s}  {tool:>4s}  {frames:6d}  {text:{column}s}  {_cause(report, code)}")
     return lines
 
 

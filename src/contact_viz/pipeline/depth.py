@@ -158,6 +158,17 @@ def precompute_depth(
     )
 
 
+def search_line(params: SGBMParams, calibration) -> str:
+    """One line on how SGBM matched: where, at which scale, the disparity search range and the nearest depth it
+    reaches with ``calibration`` (contact_viz.io.calibration.Calibration)."""
+    scale = params.downscale or 1
+    low, high = params.min_disparity * scale, (params.min_disparity + params.num_disparities - 1) * scale
+    shifted = high + calibration.disparity_offset_px
+    nearest = f"{1000 * calibration.fx * calibration.baseline_m / shifted:.1f} mm" if shifted > 0 else "any depth"
+    where = "whole frames" if not params.region else "around the instruments (whole frames where none is in view)"
+    return f"SGBM: {where} at 1/{scale} scale, disparities {low}-{high} px: depth from {nearest}"
+
+
 def run_depth_command(
     session_dir: str | Path,
     *,
@@ -192,6 +203,8 @@ def run_depth_command(
         summary = precompute_depth(session, output=output, workers=workers, progress=progress,
                                    require_cache=output is None)
     lines = [session.depth_note] + summary.lines()
+    if cache is not None:
+        lines.insert(1, search_line(cache.params, session.calibration))
     if summary.frames and len(summary.failed) == summary.frames:
         raise SessionError(session.root, "no frame's depth could be computed:\n" + "\n".join(summary.failed[:5]))
     return lines

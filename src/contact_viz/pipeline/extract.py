@@ -28,6 +28,7 @@ from contact_viz.io.atomic import all_or_nothing, atomic_write
 from contact_viz.io.jsonfile import read_json, write_json
 from contact_viz.params import PATCH_PARAMS_EXPECTED, LabelParams, PatchParams, patch_params_from_json, to_dict
 from contact_viz.geometry.instruments import instrument_ids, instrument_patches
+from contact_viz.geometry.occlusion import half_occluded
 from contact_viz.geometry.patch import PatchResult, compute_patch, patch_depth_rows
 from contact_viz.io.session import BadFrame, Frame, Session
 from contact_viz.pipeline.allocator import keep_freed_memory
@@ -109,7 +110,7 @@ def iter_frame_results(
     try:
         for item in frames:
             future = None if isinstance(item, BadFrame) else pool.submit(
-                frame_patches, item, params, session.object_ids)
+                session_frame_patches, session, item, params)
             pending.append((item, future))
             if len(pending) >= 2 * workers:
                 yield finish(*pending.popleft())
@@ -123,17 +124,42 @@ def iter_frame_results(
         frames.close()
 
 
+def hidden_pixels(session: Session, frame: Frame, params: PatchParams) -> np.ndarray | None:
+    """(rows of frame.depth_m, W) bool: the pixels the right camera cannot see beside the instruments
+    (geometry.occlusion.half_occluded on the depth as disparity, fx * baseline / depth - offset, and every
+    instrument of the mask), when ``params.hidden_strip`` leaves them out of the patch ("sgbm": with depth from
+    contact-viz's SGBM only); else None. ``frame``'s mask and depth hold the same rows."""
+    if params.hidden_strip == "never" or (params.hidden_strip == "sgbm" and session.depth_source != "sgbm"):
+        return None
+    if not isinstance(frame, Frame) or frame.depth_m is None or frame.tool_mask is None:
+        return None
+    depth = np.asarray(frame.depth_m, dtype=np.float64)
+    tools = frame.tool_mask if frame.tool_ids is None else frame.tool_ids != 0
+    cal = session.calibration
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disparity = np.where(np.isfinite(depth) & (depth > 0),
+                             cal.fx * cal.baseline_m / depth - cal.disparity_offset_px, np.nan)
+    return half_occluded(disparity, tools[:depth.shape[0]])
+
+
+def session_frame_patches(session: Session, frame: Frame, params: PatchParams
+                          ) -> tuple[PatchResult, dict[int, PatchResult]]:
+    """frame_patches of a whole decoded frame of ``session``: its selected instruments, its hidden pixels."""
+    return frame_patches(frame, params, session.object_ids, 0, hidden_pixels(session, frame, params))
+
+
 def frame_patches(frame: Frame, params: PatchParams, selected: Sequence[int] | None = None,
-                  row0: int = 0) -> tuple[PatchResult, dict[int, PatchResult]]:
+                  row0: int = 0, hidden: np.ndarray | None = None) -> tuple[PatchResult, dict[int, PatchResult]]:
     """(the frame's patch, {object id: patch}) of a decoded frame whose depth holds image rows ``row0`` on
-    (see :class:`FrameResult`). One instrument: ``compute_patch`` on the tool mask, as for a binary mask."""
+    (see :class:`FrameResult`). One instrument: ``compute_patch`` on the tool mask, as for a binary mask.
+    ``hidden``: the depth rows' pixels the right camera cannot see (:func:`hidden_pixels`), None = none."""
     depth_m = frame.depth_m
     ids = frame.tool_ids[row0:row0 + depth_m.shape[0]] if frame.tool_ids is not None else None
     tools = instrument_ids(ids, selected) if ids is not None else ()
     if ids is None or (len(tools) <= 1 and not (ids[(ids != 0)] != (tools[0] if tools else 0)).any()):
-        patch = compute_patch(depth_m, frame.tool_mask[row0:row0 + depth_m.shape[0]], params)
+        patch = compute_patch(depth_m, frame.tool_mask[row0:row0 + depth_m.shape[0]], params, hidden)
         return patch, ({tools[0]: patch} if tools else {})
-    patches = instrument_patches(depth_m, ids, params, selected)
+    patches = instrument_patches(depth_m, ids, params, selected, hidden)
     if not patches:
         return compute_patch(depth_m, np.zeros(ids.shape, bool), params), {}
     nearest = min(patches, key=lambda k: (not np.isfinite(patches[k].distance_m), abs(patches[k].distance_m)
@@ -224,8 +250,9 @@ class FeatureRows:
             return [feature_row(self.session, FrameResult(depth_m, None))]
         cropped = dataclasses.replace(frame, depth_m=depth_m, tool_mask=frame.tool_mask[row0:row1],
                                       tool_ids=None if frame.tool_ids is None else frame.tool_ids[row0:row1])
+        hidden = hidden_pixels(self.session, cropped, self.params)
         return result_rows(self.session, FrameResult(frame, *frame_patches(cropped, self.params,
-                                                                          self.session.object_ids)), row0)
+                                                                          self.session.object_ids, 0, hidden)), row0)
 
 
 def extract_features(

@@ -30,6 +30,12 @@ Two more need a session of several instruments (:data:`MULTI_FAULT_KINDS`; masks
   ``Fault.severity`` is its id.
 
 The mask faults of one instrument change object id 1 (``target_id``) and leave the others as they are.
+
+One is a failure of the stereo pair (:data:`PAIR_FAULT_KINDS`), usually injected into every frame:
+
+* ``vertical_offset``: the right images moved down by this many px (up when negative; a fraction is
+  interpolated bilinearly), the left ones unchanged: the pair is no longer rectified (a wrong or stale
+  calibration), which the ``not_rectified`` session check measures.
 """
 
 from __future__ import annotations
@@ -51,15 +57,16 @@ from PIL import Image
 from contact_viz.io.atomic import atomic_write
 from contact_viz.synth.sensors import spread_tool_depth
 
-__all__ = ["ALL_FAULT_KINDS", "FAULT_KINDS", "MULTI_FAULT_KINDS", "Fault", "inject_fault", "perturb_session",
-           "read_mask_ids", "read_truth_phases"]
+__all__ = ["ALL_FAULT_KINDS", "FAULT_KINDS", "MULTI_FAULT_KINDS", "PAIR_FAULT_KINDS", "Fault", "inject_fault",
+           "perturb_session", "read_mask_ids", "read_truth_phases", "shift_rows"]
 
 FAULT_KINDS = (
     "mask_dropout", "mask_drift", "mask_bleed", "second_object", "depth_holes", "edge_bleeding",
     "depth_scale", "depth_misregistration", "force_offset", "frozen_depth",
 )
 MULTI_FAULT_KINDS = ("id_swap", "tools_merged")  # failures of masks with several instruments (object ids)
-ALL_FAULT_KINDS = FAULT_KINDS + MULTI_FAULT_KINDS
+PAIR_FAULT_KINDS = ("vertical_offset",)  # failures of the stereo pair (its rectification), usually on every frame
+ALL_FAULT_KINDS = FAULT_KINDS + MULTI_FAULT_KINDS + PAIR_FAULT_KINDS
 MASK_FAULTS = ("mask_dropout", "mask_drift", "mask_bleed", "second_object")
 DEPTH_FAULTS = ("depth_holes", "edge_bleeding", "depth_scale", "depth_misregistration", "frozen_depth")
 
@@ -159,6 +166,31 @@ def _shift(array: np.ndarray, dx: int, dy: int, fill) -> np.ndarray:
     xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
     out[yd, xd] = array[ys, xs]
     return out
+
+
+def shift_rows(image: np.ndarray, px: float) -> np.ndarray:
+    """``image`` moved down by ``px`` rows (up when negative; a fraction is interpolated bilinearly), the rows it
+    uncovers repeating the edge row; same shape and dtype."""
+    height, width = image.shape[:2]
+    move = np.float32([[1, 0, 0], [0, 1, px]])
+    return cv2.warpAffine(image, move, (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _jpeg_quality(session: Path) -> int:
+    """The JPEG quality a synthetic session was written at (session.json), else 92."""
+    try:
+        return int(json.loads((session / "session.json").read_text())["generator"]["jpeg_quality"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 92
+
+
+def _write_image(path: Path, image: np.ndarray, quality: int) -> None:
+    """Encode ``image`` (as cv2 reads it) into ``path`` by its suffix (JPEG at ``quality``)."""
+    jpeg = path.suffix.lower() != ".png"
+    ok, data = cv2.imencode(path.suffix, image, [cv2.IMWRITE_JPEG_QUALITY, quality] if jpeg else [])
+    if not ok:
+        raise RuntimeError(f"{path}: OpenCV could not encode the image again")
+    _replace(path, lambda handle: handle.write(data.tobytes()))
 
 
 def _axis(mask: np.ndarray) -> np.ndarray:
@@ -291,6 +323,13 @@ def inject_fault(src: str | Path, dst: str | Path, kind: str, frames, severity: 
         return Fault(kind, frames, severity)
     if kind in MULTI_FAULT_KINDS:
         return _inject_ids(src, dst, kind, frames, stems, rng)
+    if kind == "vertical_offset":
+        quality = _jpeg_quality(src)
+        right = {p.stem: p for p in (src / "right").iterdir() if not p.name.startswith(".")}
+        for i in frames:
+            image = cv2.imread(str(right[stems[i]]), cv2.IMREAD_UNCHANGED)
+            _write_image(dst / "right" / right[stems[i]].name, shift_rows(image, severity), quality)
+        return Fault(kind, frames, severity)
     for i in frames:
         mask, like, ids = _read_mask(src / "masks" / f"{stems[i]}.png")
         if kind in MASK_FAULTS:
@@ -337,10 +376,7 @@ def perturb_session(src: str | Path, dst: str | Path, *, depth_rel: float = 1e-5
     def rng_for(data: bytes) -> np.random.Generator:  # files alike are changed alike (a repeated depth map stays so)
         return np.random.default_rng([seed, int.from_bytes(hashlib.blake2b(data, digest_size=8).digest(), "little")])
 
-    try:
-        quality = int(json.loads((src / "session.json").read_text())["generator"]["jpeg_quality"])
-    except (OSError, ValueError, KeyError, TypeError):
-        quality = 92
+    quality = _jpeg_quality(src)
     for path in sorted((src / "depth").glob("*.npy")) if (src / "depth").is_dir() else []:
         depth = np.load(path)
         rng = rng_for(depth.tobytes())
@@ -353,9 +389,4 @@ def perturb_session(src: str | Path, dst: str | Path, *, depth_rel: float = 1e-5
             rng = rng_for(image.tobytes())
             step = (rng.random(image.shape[:2]) < grey_share) * rng.choice(np.array([-1, 1], np.int16), image.shape[:2])
             image = np.clip(image.astype(np.int16) + (step[..., None] if image.ndim == 3 else step), 0, 255)
-            jpeg = path.suffix.lower() != ".png"
-            ok, data = cv2.imencode(path.suffix, image.astype(np.uint8),
-                                    [cv2.IMWRITE_JPEG_QUALITY, quality] if jpeg else [])
-            if not ok:
-                raise RuntimeError(f"{path}: OpenCV could not encode the image again")
-            _replace(dst / side / path.name, lambda handle: handle.write(data.tobytes()))
+            _write_image(dst / side / path.name, image.astype(np.uint8), quality)

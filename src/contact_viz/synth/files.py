@@ -15,6 +15,7 @@ from PIL import Image
 from contact_viz.io.atomic import atomic_write, reported_as, staging_path, sweep_stale
 from contact_viz.io.jsonfile import write_json
 from contact_viz.params import to_dict
+from contact_viz.synth.camera import camera_record
 from contact_viz.synth.motion import ToolTrack, tissue_displacement
 from contact_viz.synth.params import SynthParams, STREAM_DEPTH, STREAM_LABELS, STREAM_TEXTURE, stream_rng
 from contact_viz.synth.render import Renderer, tool_parts
@@ -260,11 +261,18 @@ def _render_session(out_dir: Path, name: str, params: SynthParams,
         for fut in pending:
             fut.result()
 
-    session = {
+    write_json(out_dir / "session.json", session_description(name, params))
+
+
+def session_description(name: str, params: SynthParams) -> dict:
+    """session.json of the session ``params`` makes under the name ``name``: name, phantom, task, fps, the
+    camera (``synth.camera.camera_record``: preset, fov_deg, fx_px, baseline_mm, working_distance_mm)
+    and every generator option (``generator``: the SynthParams fields)."""
+    return {
         "name": name,
         "phantom": params.phantom,
         "task": params.task,
         "fps": params.fps,
+        "camera": camera_record(params, stereo_camera(params).fx),
         "generator": to_dict(params),
     }
-    write_json(out_dir / "session.json", session)

@@ -60,7 +60,6 @@ from pathlib import Path
 
 from contact_viz.io.atomic import reported_as, staging_path, sweep_stale
 from contact_viz.io.jsonfile import write_json
-from contact_viz.params import to_dict
 from contact_viz.synth.files import (
     _SESSION_DIRS,
     _SESSION_FILES,
@@ -69,6 +68,7 @@ from contact_viz.synth.files import (
     _write_frame,
     _write_tables,
     davis_palette,
+    session_description,
 )
 from contact_viz.synth.params import STREAM_DEPTH, STREAM_TEXTURE, SynthParams, stream_rng
 from contact_viz.synth.render import Renderer
@@ -378,13 +378,7 @@ def write_live(
                 (stage / sub).mkdir()
             camera, tracks = stereo_camera(params), plan_tracks(params)
             _write_tables(stage, params, camera, tracks)
-            write_json(stage / "session.json", {
-                "name": out_dir.resolve().name,
-                "phantom": params.phantom,
-                "task": params.task,
-                "fps": params.fps,
-                "generator": to_dict(params),
-            })
+            write_json(stage / "session.json", session_description(out_dir.resolve().name, params))
             player = _Player(out_dir, stage, params, fps, rename, force_delay_frames)
             producer = player.producer = _Producer(stage, params, fps, min(workers, params.frames))
             if not producer.wait(lambda: producer.can_start(prerender), stop):

@@ -19,8 +19,8 @@ from contact_viz.synth.scene import (
 class _PhantomLayout:
     """Where the tool works on a phantom and how its tissue looks."""
 
-    target_box_m: tuple[float, float, float, float]  # (u_min, u_max, v_min, v_max) of press targets, m
-    target_min_height_m: float  # targets must be at least this high above the base plane, m
+    target_box_m: tuple[float, float, float, float]  # (u_min, u_max, v_min, v_max) of press targets, phantom units
+    target_min_height_m: float  # targets must be at least this high above the base plane, phantom units
     tool_axis: tuple[float, float, float]  # mean shaft direction toward the tip, camera frame, -
     tissue_rgb: tuple[float, float, float]  # base albedo of the phantom, linear RGB
     tray_rgb: tuple[float, float, float]  # albedo of the base plane around it, linear RGB
@@ -85,8 +85,8 @@ class ToolTrack:
 class _State:
     """A keyframe of the tool motion (see ``_tool_centres`` for the meaning of h and pull)."""
 
-    u: float  # target on the tissue, m
-    v: float  # target on the tissue, m
+    u: float  # target on the tissue, phantom units
+    v: float  # target on the tissue, phantom units
     h: float  # > 0: gap along the target normal; < 0: press depth, m
     pull: float  # distance pulled out along the pull direction, m
     jaw: float  # opening of each jaw, rad
@@ -169,16 +169,63 @@ _MAX_TARGET_TRIES = 400  # attempts to draw a reachable target, count
 _AXIS_JITTER = 0.08  # per-cycle random change of the tool axis (std per component of a unit vector), -
 _WOBBLE_HZ = (0.6, 1.4)  # range of the frequency of the slow hover / hold variation, 1/s
 _HOLD_TREMOR = 0.05  # amplitude of the indentation variation while holding, fraction of the depth
+# Nearest z-depth any visible part of an instrument may have, m, and as a fraction of the tissue distance
+# (the smaller of the two holds), where the camera sees less than the design's view (scene_scale < 1). On
+# real da Vinci frames (LauraCruciani/DaVinci_project) the nearest instrument is 25 mm from the camera at a
+# 50 mm working distance; the default camera's stay 25 mm or more away without a limit (nearest_in_view_m,
+# 12 seeds x 4 phantoms x 200 frames with two instruments, 20 x 4 x 300 with one).
+NEAR_M, NEAR_FRACTION = 0.02, 0.4
+_GAP_STEPS = 16  # gaps checked from the deepest press to the largest gap at a target (near_limit_m), count
+_MOVE_STEPS = 12  # states checked along a move between two targets (near_limit_m), count
+_GAP_HALVINGS = 2  # times a cycle's gaps are halved when no target has room for them, count
+_JAW_SPHERES = 4  # spheres along the jaws in nearest_in_view_m, count
+
+
+def near_limit_m(params: SynthParams) -> float:
+    """The nearest z-depth a visible part of an instrument may have in this session, m; -inf (no limit)
+    where the camera sees at least the design's view (``scene_scale`` 1: the scene as designed)."""
+    if params.scene_scale >= 1.0:
+        return -math.inf
+    return min(NEAR_M, NEAR_FRACTION * params.tissue_distance_m)
+
+
+def nearest_in_view_m(params: SynthParams, camera, c: np.ndarray, axis: np.ndarray,
+                      open_jaws: bool | None = None) -> np.ndarray:
+    """Smallest z-depth (...) of the tools with tip centres c (..., 3) and axes (..., 3) over their parts
+    whose outline reaches into the left image, m (inf: none does). The parts are spheres along the axis:
+    along the jaws, each holding both (opened by ``jaw_open_deg`` if ``open_jaws``; None: on the glove),
+    then the wrist and the shaft (``_tool_samples``); a sphere's nearest depth is its centre's minus its
+    radius."""
+    c, axis = np.asarray(c, dtype=np.float64), np.asarray(axis, dtype=np.float64)
+    pts, radius = _tool_samples(params, c[..., None, :], axis[..., None, :])
+    r, length = params.jaw_radius_m, params.jaw_length_m  # a jaw tip's centre: see _jaw_geometry
+    if open_jaws is None:
+        open_jaws = params.task == "pulling"
+    beta = math.radians(params.jaw_open_deg) if open_jaws else 0.0
+    jaws = r + math.hypot(length * (1.0 - math.cos(beta)), r + length * math.sin(beta))
+    along = np.linspace(0.0, length, _JAW_SPHERES)
+    pts = np.concatenate([c[..., None, :] - along[:, None] * axis[..., None, :], pts], axis=-2)
+    radius = np.concatenate([np.full(_JAW_SPHERES, jaws), radius])
+    # A sphere is in view when it reaches into the image's frustum: in front of the camera, and on the inner
+    # side of (or crossing) each of the four planes through the optical centre and an image edge.
+    x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
+    inside = z + radius > 0
+    for along, centre, focal, edges in ((x, camera.K[0, 2], camera.fx, (-0.5, camera.width - 0.5)),
+                                        (y, camera.K[1, 2], camera.K[1, 1], (-0.5, camera.height - 0.5))):
+        low, high = ((edge - centre) / focal for edge in edges)  # slopes x/z (or y/z) of the two edges
+        inside &= (along - low * z) / math.hypot(1.0, low) >= -radius
+        inside &= (high * z - along) / math.hypot(1.0, high) >= -radius
+    return np.where(inside, z - radius, np.inf).min(axis=-1)
 
 
 def _height_clearance(phantom: str, frame: TissueFrame, points: np.ndarray) -> np.ndarray:
     """First-order signed distance (m) of points (..., 3) above the undeformed surface."""
     u, v, w = frame.to_tissue(points)
     du, dv = height_gradient(phantom, u, v)
-    return (w - phantom_height(phantom, u, v)) / np.sqrt(1.0 + du * du + dv * dv)
+    return frame.scale * (w - phantom_height(phantom, u, v)) / np.sqrt(1.0 + du * du + dv * dv)
 
 
-def _placement_ok(phantom, frame, camera, params, u, v, axis, checks) -> bool:
+def _placement_ok(phantom, frame, camera, params, u, v, axis, checks, far_h: float = 0.0) -> bool:
     """Whether the tool at target (u, v) with this axis is clear of the tissue in every checked state.
 
     The target surface must face the camera. ``checks`` is a list of (h, pull, jaw, in_view):
@@ -186,7 +233,9 @@ def _placement_ok(phantom, frame, camera, params, u, v, axis, checks) -> bool:
     state the wrist and shaft keep ``_CLEARANCE_M`` from the tissue (the undeformed surface,
     lowered by the dent when pressing) and the far end of the shaft lies outside the image; states
     with in_view also keep the tip inside the central image region and, when not pressing, in the
-    camera's line of sight.
+    camera's line of sight. In every state, at every gap from the deepest press up to ``far_h`` (the
+    largest the tool backs off to there) and along the pull, no visible part of the tool comes nearer
+    the camera than ``near_limit_m``.
     """
     n = surface_normals(phantom, frame, u, v)
     if -float(axis @ n) < _MIN_COS_AXIS:
@@ -223,7 +272,25 @@ def _placement_ok(phantom, frame, camera, params, u, v, axis, checks) -> bool:
                 sight = np.linspace(0.0, 1.0 - 0.004 / np.linalg.norm(c), 40)[1:, None] * c  # camera -> tip
                 if np.any(_height_clearance(phantom, frame, sight) < 0):
                     return False
-    return True
+        if nearest_in_view_m(params, camera, c, axis) < near_limit_m(params):
+            return False
+    # What parts are in view changes along the way: every gap from the deepest press to far_h, every pull.
+    gaps = [h for h, _, _, _ in checks] + [far_h]
+    h = np.concatenate([np.linspace(min(gaps), max(gaps), _GAP_STEPS), np.zeros(_GAP_STEPS)])
+    pull = np.concatenate([np.zeros(_GAP_STEPS), np.linspace(0.0, max(p for _, p, _, _ in checks), _GAP_STEPS)])
+    c, _, _, _ = _tool_centres(phantom, frame, params, np.full_like(h, u), np.full_like(h, v), h, pull, axis[None, :])
+    return bool(np.all(nearest_in_view_m(params, camera, c, axis[None, :]) >= near_limit_m(params)))
+
+
+def _move_near_ok(phantom, frame, camera, params, start: _State, end: _State) -> bool:
+    """Whether no visible part of the tool comes nearer the camera than ``near_limit_m`` while it moves
+    from ``start`` to ``end`` (eased as ``_sample_segments`` moves it)."""
+    s = _ease(np.linspace(0.0, 1.0, _MOVE_STEPS + 1)[1:])
+    at = {k: getattr(start, k) + (getattr(end, k) - getattr(start, k)) * s for k in ("u", "v", "h", "pull")}
+    axis = start.axis[None, :] * (1 - s[:, None]) + end.axis[None, :] * s[:, None]
+    axis = with_elevation(axis / np.linalg.norm(axis, axis=1, keepdims=True), frame, params.shaft_elevation_deg)
+    c, _, _, _ = _tool_centres(phantom, frame, params, at["u"], at["v"], at["h"], at["pull"], axis)
+    return bool(np.all(nearest_in_view_m(params, camera, c, axis) >= near_limit_m(params)))
 
 
 def with_elevation(axis: np.ndarray, frame: TissueFrame, elevation_deg: float | None) -> np.ndarray:
@@ -249,12 +316,15 @@ def mean_tool_axis(phantom: str, mirrored: bool = False) -> np.ndarray:
     return mean_axis
 
 
-def _draw_target(rng, phantom, frame, camera, params, checks, mean_axis=None, box=None, accept=None):
-    """A reachable target (u, v) and tool axis for one cycle.
+def _draw_target(rng, phantom, frame, camera, params, checks, mean_axis=None, box=None, accept=None, far_h=0.0,
+                 arrive=None):
+    """A reachable target (u, v) and tool axis for one cycle (``_placement_ok`` with ``checks`` and ``far_h``).
 
     ``mean_axis`` and ``box`` (u_min, u_max, v_min, v_max) default to the phantom's; ``accept(u, v)``
-    (optional) can veto a target before the placement checks. With ``params.shaft_elevation_deg`` the
-    drawn axis is turned to that elevation.
+    (optional) can veto a target before the placement checks; ``arrive`` = (state, h) (optional): the
+    move from that state to gap h above the target keeps the tool as far from the camera as
+    ``_placement_ok`` does (``_move_near_ok``). With ``params.shaft_elevation_deg`` the drawn axis is
+    turned to that elevation.
     """
     layout = LAYOUTS[phantom]
     if mean_axis is None:
@@ -270,14 +340,27 @@ def _draw_target(rng, phantom, frame, camera, params, checks, mean_axis=None, bo
             continue
         if accept is not None and not accept(u, v):
             continue
-        if _placement_ok(phantom, frame, camera, params, u, v, axis, checks):
+        if _placement_ok(phantom, frame, camera, params, u, v, axis, checks, far_h) and (
+                arrive is None or _move_near_ok(phantom, frame, camera, params, arrive[0],
+                                                _State(u, v, arrive[1], 0.0, arrive[0].jaw, axis))):
             return u, v, axis
     flat = ""
     if params.shaft_elevation_deg is not None:
         flat = (f" with the shaft {params.shaft_elevation_deg:g} deg above the tissue plane (a flat shaft only reaches "
                 f"slopes facing it; the broad liver needs about 30 deg)")
+    near = ""
+    if params.scene_scale < 1:
+        near = (f" with the camera's {params.fov_deg:.3g} deg at {params.tissue_distance_m * 1e3:.3g} mm (the phantom "
+                f"shrinks to {params.scene_scale:.2f} of its size, the instruments keep theirs and stay "
+                f"{near_limit_m(params) * 1e3:.3g} mm from the camera; a wider view or a longer working distance "
+                f"leaves more room)")
     raise RuntimeError(
-        f"synth: found no reachable tool target on phantom {phantom!r}{flat} in {_MAX_TARGET_TRIES} tries")
+        f"synth: found no reachable tool target on phantom {phantom!r}{flat}{near} in {_MAX_TARGET_TRIES} tries")
+
+
+def scaled(span: tuple[float, float], params: SynthParams) -> tuple[float, float]:
+    """A range of gaps or heights (m) at the session's ``gap_scale``, m."""
+    return span[0] * params.gap_scale, span[1] * params.gap_scale
 
 
 def _plan_segments(params: SynthParams, rng: np.random.Generator) -> list[_Segment]:
@@ -294,27 +377,35 @@ def _plan_segments(params: SynthParams, rng: np.random.Generator) -> list[_Segme
         hz, phase = float(rng.uniform(*_WOBBLE_HZ)), float(rng.uniform(0, 2 * np.pi))
         return {"wobble": amplitude, "wobble_hz": hz, "wobble_phase": phase}
 
+    def checks_of(start_gap: float, hover: float, pull: float) -> list[tuple[float, float, float, bool]]:
+        if grasping:
+            return [(start_gap, 0.0, open_rad, False), (hover, 0.0, open_rad, True),
+                    (-params.grasp_squeeze_m[1], 0.0, 0.0, True), (0.0, pull, 0.0, True)]
+        return [(start_gap, 0.0, 0.0, False), (hover, 0.0, 0.0, True), (-params.press_depth_m[1], 0.0, 0.0, True)]
+
+    start_gaps, hover_gaps = scaled(params.start_gap_m, params), scaled(params.hover_gap_m, params)
     segments: list[_Segment] = []
     total, cycle, prev = 0, 0, None
     while total < params.frames:
-        start_gap = float(rng.uniform(*params.start_gap_m))
-        hover = float(rng.uniform(*params.hover_gap_m))
+        start_gap = float(rng.uniform(*start_gaps))
+        hover = float(rng.uniform(*hover_gaps))
         if grasping:
             depth = float(rng.uniform(*params.grasp_squeeze_m))
-            pull = float(rng.uniform(*params.pull_height_m))
-            squeezed = -params.grasp_squeeze_m[1]
-            checks = [
-                (start_gap, 0.0, open_rad, False),
-                (hover, 0.0, open_rad, True),
-                (squeezed, 0.0, 0.0, True),
-                (0.0, pull, 0.0, True),
-            ]
+            pull = float(rng.uniform(*scaled(params.pull_height_m, params)))
         else:
             light = cycle > 0 and rng.uniform() < params.light_press_prob
             depth = float(rng.uniform(*(params.light_press_depth_m if light else params.press_depth_m)))
             pull = 0.0
-            checks = [(start_gap, 0.0, 0.0, False), (hover, 0.0, 0.0, True), (-params.press_depth_m[1], 0.0, 0.0, True)]
-        u, v, axis = _draw_target(rng, phantom, frame, camera, params, checks)
+        shrink = 1.0  # where no target has room for the gaps drawn (a close camera), they are halved
+        while True:
+            try:
+                u, v, axis = _draw_target(rng, phantom, frame, camera, params, checks_of(start_gap, hover, pull),
+                                          far_h=start_gaps[1] * shrink, arrive=None if prev is None else (prev, hover))
+                break
+            except RuntimeError:
+                if shrink < 0.5 ** (_GAP_HALVINGS - 1):
+                    raise
+                shrink, start_gap, hover, pull = 0.5 * shrink, 0.5 * start_gap, 0.5 * hover, 0.5 * pull
         if prev is None:
             prev = _State(u, v, start_gap, 0.0, open_rad, axis)
         hover_state = _State(u, v, hover, 0.0, open_rad, axis)
@@ -336,7 +427,7 @@ def _plan_segments(params: SynthParams, rng: np.random.Generator) -> list[_Segme
             hold_frames = frames_of(params.hold_s)
             segs.append(_Segment("hold", hold_frames, pressed, pressed, False, **wobble_args(_HOLD_TREMOR * depth)))
             last = pressed
-        retracted = _State(u, v, float(rng.uniform(*params.start_gap_m)), 0.0, open_rad, axis)
+        retracted = _State(u, v, float(rng.uniform(*start_gaps)) * shrink, 0.0, open_rad, axis)
         segs.append(_Segment("retract", frames_of(params.retract_s), last, retracted, False, 0.0, 0.0, 0.0))
         segments += segs
         total += sum(s.frames for s in segs)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,6 +14,19 @@ PHANTOMS: tuple[str, ...] = ("cup", "kidney", "liver", "glove")
 PHASES: tuple[str, ...] = ("approach", "press", "hold", "retract", "pull")
 
 REFERENCE_WIDTH_PX = 1920  # image width at which the px-valued noise parameters are given, px
+# Tissue distance and horizontal field of view the phantoms were designed at (the default camera's), m and
+# deg: a camera that sees a narrower strip of the base plane sees them shrunk (SynthParams.scene_scale).
+DESIGN_DISTANCE_M, DESIGN_FOV_DEG = 0.09, 80.0
+# Tissue distance (at DESIGN_FOV_DEG) down to which the gaps keep their sizes, m: a camera that sees a
+# narrower strip sees them shrunk (SynthParams.gap_scale). At 50 mm the default scene's gaps still fit
+# between tissue and camera: its instruments stay 25 mm or more from the camera, as on real da Vinci frames.
+GAP_DISTANCE_M = 0.05
+
+
+def seen_half_width_m(distance_m: float, fov_deg: float) -> float:
+    """Half the width of the plane at ``distance_m`` that a camera with this horizontal field of view
+    sees on its axis, m."""
+    return distance_m * math.tan(math.radians(fov_deg) / 2)
 
 # Independent random streams, each seeded by (seed, stream, phantom[, frame]): changing how much one
 # part draws never changes another part.
@@ -40,7 +54,8 @@ class SynthParams:
     fps: int = checked(30, ge=1)  # frame rate, 1/s
     fov_deg: float = checked(80.0, ge=30, le=120)  # horizontal field of view, deg
     baseline_m: float = checked(0.005, gt=0)  # stereo baseline (right camera at +x), m
-    tissue_distance_m: float = checked(0.09, gt=0)  # distance from the camera to the tissue base plane along z, m
+    # distance from the camera to the tissue base plane along z (the working distance), m
+    tissue_distance_m: float = checked(0.09, gt=0)
     # tilt of the base plane about the camera x axis (top recedes), deg
     tissue_tilt_deg: float = checked(30.0, ge=0, lt=60)
     shaft_diameter_m: float = checked(0.008, gt=0)  # instrument shaft diameter, m
@@ -57,12 +72,13 @@ class SynthParams:
     # indentation of a light touch, m
     light_press_depth_m: tuple[float, float] = checked((0.0004, 0.0013), ge=0, pair=True)
     light_press_prob: float = checked(0.3, ge=0, le=1)  # chance that a press after the first is a light touch, -
-    hover_gap_m: tuple[float, float] = checked((0.002, 0.010), ge=0, pair=True)  # gap while hovering before a press, m
-    # gap where an approach starts / a retract ends, m
+    # gap while hovering before a press, m (times gap_scale)
+    hover_gap_m: tuple[float, float] = checked((0.002, 0.010), ge=0, pair=True)
+    # gap where an approach starts / a retract ends, m (times gap_scale)
     start_gap_m: tuple[float, float] = checked((0.012, 0.022), ge=0, pair=True)
     # indentation when the jaws grasp (glove), m
     grasp_squeeze_m: tuple[float, float] = checked((0.0006, 0.0012), ge=0, pair=True)
-    # how far the grasped surface is pulled (glove), m
+    # how far the grasped surface is pulled (glove), m (times gap_scale)
     pull_height_m: tuple[float, float] = checked((0.005, 0.014), ge=0, pair=True)
     dent_sigma_m: float = checked(0.006, gt=0)  # Gaussian width of the dent around the tip, m
     tent_length_m: float = checked(0.005, gt=0)  # decay length of the tent around the grasped point, m
@@ -99,6 +115,26 @@ class SynthParams:
             raise ValueError("SynthParams needs 0 < hover_gap_m and start_gap_m >= hover_gap_m (approach moves in)")
         if self.press_depth_m[0] <= 0 or self.light_press_depth_m[0] <= 0 or self.grasp_squeeze_m[0] <= 0:
             raise ValueError("SynthParams.press_depth_m, light_press_depth_m and grasp_squeeze_m must be > 0")
+
+    @property
+    def scene_scale(self) -> float:
+        """Size of the phantom relative to its design: the width of the base plane the camera sees on its
+        axis, ``tissue_distance_m tan(fov_deg / 2)``, over the design camera's (DESIGN_DISTANCE_M,
+        DESIGN_FOV_DEG), at most 1. The phantom (its shape, texture and where the tool works on it) scales
+        by it, so a nearer or narrower camera sees the same phantom filling the same part of the image;
+        the instruments, the press depths and the tissue's give keep their sizes."""
+        seen = seen_half_width_m(self.tissue_distance_m, self.fov_deg)
+        return min(1.0, seen / seen_half_width_m(DESIGN_DISTANCE_M, DESIGN_FOV_DEG))
+
+    @property
+    def gap_scale(self) -> float:
+        """Size of the gaps relative to the fields: the width of the base plane the camera sees on its
+        axis over what the design's field of view sees at GAP_DISTANCE_M, at most 1. ``hover_gap_m``,
+        ``start_gap_m``, ``pull_height_m`` and the second instrument's heights above the tissue scale
+        by it: nearer, there is no room for them between tissue and camera, and in a narrower view an
+        instrument backing off that far leaves it."""
+        seen = seen_half_width_m(self.tissue_distance_m, self.fov_deg)
+        return min(1.0, seen / seen_half_width_m(GAP_DISTANCE_M, DESIGN_FOV_DEG))
 
     @property
     def task(self) -> str:

@@ -93,8 +93,9 @@ def _vessel_map(rng, shape, texel_m: float, count: int) -> np.ndarray:
 
 
 def _tissue_texture(phantom: str, u_grid: np.ndarray, v_grid: np.ndarray, rng):
-    """Surface maps over the (u, v) texel grid (T, S): albedo (T, S, 3) float32 linear RGB,
-    wetness (T, S) float32 in [0, 1], and micro-relief slopes (dh/du, dh/dv) (T, S, 2) float32."""
+    """Surface maps over the (u, v) texel grid (T, S) (phantom units; the lengths here are phantom units
+    too): albedo (T, S, 3) float32 linear RGB, wetness (T, S) float32 in [0, 1], and micro-relief slopes
+    (dh/du, dh/dv) (T, S, 2) float32."""
     layout = LAYOUTS[phantom]
     texel_m = float(u_grid[1] - u_grid[0])
     shape = (len(v_grid), len(u_grid))
@@ -136,7 +137,9 @@ class Renderer:
         h, w = camera.height, camera.width
         px_per_m = camera.fx / params.tissue_distance_m
 
-        # Tissue grid: covers the base-plane footprint of both views' corners, with margin.
+        # Tissue grid (phantom units, TissueFrame): covers the base-plane footprint of both views' corners,
+        # with margin. Mesh cells and texels are sized in camera-frame metres, then turned into phantom units:
+        # the texture scales with the phantom.
         corners = camera.pixel_rays(np.array([0, w - 1]), np.array([0, h - 1])).reshape(-1, 3).astype(np.float64)
         uv = []
         for origin in (np.zeros(3), np.array([camera.baseline_m, 0, 0])):
@@ -144,9 +147,9 @@ class Renderer:
             pu, pv, _ = frame.to_tissue(origin + t[:, None] * corners)
             uv.append(np.stack([pu, pv], 1))
         uv = np.concatenate(uv)
-        margin = 0.012  # m
+        margin = 0.012  # phantom units
         (u0, v0), (u1, v1) = uv.min(0) - margin, uv.max(0) + margin
-        cell = min(params.mesh_cell_px / px_per_m, _MAX_CELL_M)
+        cell = min(params.mesh_cell_px / px_per_m, _MAX_CELL_M) / frame.scale
         nu, nv = int(math.ceil((u1 - u0) / cell)) + 1, int(math.ceil((v1 - v0) / cell)) + 1
         self.u_grid, self.v_grid = np.linspace(u0, u1, nu), np.linspace(v0, v1, nv)
         self.nu, self.nv = nu, nv
@@ -156,7 +159,7 @@ class Renderer:
         self.triangles = np.stack([np.stack([a, b, c], 1), np.stack([d, c, b], 1)], 1).reshape(-1, 3).astype(np.uint32)
 
         # Surface maps over the same (u, v) rectangle.
-        texel = _TEXEL_PX / px_per_m
+        texel = _TEXEL_PX / px_per_m / frame.scale
         tw = min(_MAX_TEXTURE_PX, int(math.ceil((u1 - u0) / texel)) + 1)
         th = min(_MAX_TEXTURE_PX, int(math.ceil((v1 - v0) / texel)) + 1)
         albedo, wet, slopes = _tissue_texture(phantom, np.linspace(u0, u1, tw), np.linspace(v0, v1, th), rng)

@@ -56,41 +56,50 @@ def stereo_camera(params: SynthParams) -> StereoCamera:
 
 @dataclass(frozen=True, eq=False)
 class TissueFrame:
-    """Orthonormal frame of the tissue base plane: a point is origin + u e_u + v e_v + w normal."""
+    """Frame of the tissue base plane: a point is origin + scale (u e_u + v e_v + w normal).
+
+    Tissue coordinates (u, v, w) are phantom units: metres of the phantom as designed (its height
+    field, where the tool works); ``scale`` (``SynthParams.scene_scale``) makes them camera-frame metres.
+    """
 
     origin_m: np.ndarray  # (3,) phantom centre on the base plane, m
     e_u: np.ndarray  # (3,) in-plane unit vector along image x
     e_v: np.ndarray  # (3,) in-plane unit vector roughly along image y (down)
     normal: np.ndarray  # (3,) unit normal of the base plane, toward the camera
+    scale: float = 1.0  # camera-frame metres per phantom unit, -
 
     def to_camera(self, u: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """Camera-frame points (..., 3) of tissue coordinates u, v, w (m)."""
-        u, v, w = (np.asarray(a, dtype=np.float64)[..., None] for a in (u, v, w))
+        """Camera-frame points (..., 3), m, of tissue coordinates u, v, w (phantom units)."""
+        u, v, w = (self.scale * np.asarray(a, dtype=np.float64)[..., None] for a in (u, v, w))
         return self.origin_m + u * self.e_u + v * self.e_v + w * self.normal
 
     def to_tissue(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Tissue coordinates (u, v, w), each (...), of camera-frame points (..., 3), m."""
+        """Tissue coordinates (u, v, w) (phantom units), each (...), of camera-frame points (..., 3), m."""
         d = np.asarray(points_m, dtype=np.float64) - self.origin_m
-        return d @ self.e_u, d @ self.e_v, d @ self.normal
+        return d @ self.e_u / self.scale, d @ self.e_v / self.scale, d @ self.normal / self.scale
 
 
-_PHANTOM_CENTRE_HEIGHT_M = 0.015  # the point this high above the phantom centre is on the optical axis, m
+_PHANTOM_CENTRE_HEIGHT_M = 0.015  # the point this high above the phantom centre is on the optical axis, phantom units
 
 
 def tissue_frame(params: SynthParams) -> TissueFrame:
-    """Base plane at ``tissue_distance_m`` along the optical axis, tilted so the image top recedes.
+    """Base plane at ``tissue_distance_m`` along the optical axis, tilted so the image top recedes,
+    with the phantom at ``params.scene_scale``.
 
     The origin (the phantom centre) is placed so that the point ``_PHANTOM_CENTRE_HEIGHT_M`` above
     it lies on the optical axis: the top of the phantom appears near the image centre.
     """
     tilt = math.radians(params.tissue_tilt_deg)
     normal = np.array([0.0, -math.sin(tilt), -math.cos(tilt)])
-    on_axis_z = params.tissue_distance_m + _PHANTOM_CENTRE_HEIGHT_M / normal[2]
+    scale = params.scene_scale
+    centre_height_m = scale * _PHANTOM_CENTRE_HEIGHT_M
+    on_axis_z = params.tissue_distance_m + centre_height_m / normal[2]
     return TissueFrame(
-        origin_m=np.array([0.0, 0.0, on_axis_z]) - _PHANTOM_CENTRE_HEIGHT_M * normal,
+        origin_m=np.array([0.0, 0.0, on_axis_z]) - centre_height_m * normal,
         e_u=np.array([1.0, 0.0, 0.0]),
         e_v=np.array([0.0, math.cos(tilt), -math.sin(tilt)]),
         normal=normal,
+        scale=scale,
     )
 
 
@@ -119,7 +128,8 @@ def _capsule_rho2(u, v, u0, v0, u1, v1, radius_m):
 
 
 def phantom_height(phantom: str, u_m: np.ndarray, v_m: np.ndarray) -> np.ndarray:
-    """Height (m, >= 0) of the phantom above its base plane at tissue coordinates (u, v) (m).
+    """Height (>= 0) of the phantom above its base plane at tissue coordinates (u, v), all in phantom
+    units (metres as designed; ``TissueFrame.scale`` makes them camera-frame metres).
 
     cup: a silicone dome with a raised rim at its foot; kidney: a bean-shaped blob with a hilum
     notch; liver: a broad surface of three lobes meeting in creases; glove: an upright column
@@ -157,7 +167,7 @@ def phantom_height(phantom: str, u_m: np.ndarray, v_m: np.ndarray) -> np.ndarray
     raise ValueError(f"phantom must be one of {PHANTOMS}, got {phantom!r}")
 
 
-_GRAD_STEP_M = 1e-5  # central-difference step for height gradients, m
+_GRAD_STEP_M = 1e-5  # central-difference step for height gradients, phantom units
 
 
 def height_gradient(phantom: str, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +179,7 @@ def height_gradient(phantom: str, u: np.ndarray, v: np.ndarray) -> tuple[np.ndar
 
 
 def surface_points(phantom: str, frame: TissueFrame, u_m: np.ndarray, v_m: np.ndarray) -> np.ndarray:
-    """Camera-frame points (..., 3), m, of the undeformed phantom surface at (u, v)."""
+    """Camera-frame points (..., 3), m, of the undeformed phantom surface at (u, v) (phantom units)."""
     return frame.to_camera(u_m, v_m, phantom_height(phantom, u_m, v_m))
 
 
@@ -190,8 +200,8 @@ def closest_surface_points(
     """Closest points of the undeformed surface to camera-frame points (M, 3), m.
 
     Returns (closest (M, 3) m, their unit normals (M, 3), signed distance (M,) m: positive
-    outside the tissue, (u, v) of the closest points (M, 2) m). The closest point lies within the
-    vertical distance |w - h(u, v)| of (u, v) in the base plane, so a grid search over that window,
+    outside the tissue, (u, v) of the closest points (M, 2) in phantom units). The closest point lies
+    within the vertical distance |w - h(u, v)| of (u, v) in the base plane, so a grid search over that window,
     refined ``_CLOSEST_ROUNDS`` times, finds it (to well below a micrometre for smooth shapes).
     """
     p = np.atleast_2d(np.asarray(points_m, dtype=np.float64))

@@ -38,8 +38,10 @@ For each run k:
 A session needs two contact runs of instrument 1 (about 100-200 frames at 30 fps) to show both
 kinds of visit; a shorter one shows the first part of this plan. Every frame of instrument 2 is
 checked before it is kept: its wrist and shaft clear the tissue, its jaws touch it only while it
-presses, it is never in contact together with instrument 1, and its capsules stay at least
-``_TOOL_CLEARANCE_M`` from instrument 1's. A press target or a visit that fails is redrawn a few
+presses, it is never in contact together with instrument 1, its capsules stay at least
+``_TOOL_CLEARANCE_M`` from instrument 1's, and no visible part of it comes nearer the camera than
+``synth.motion.near_limit_m``. Its heights scale with ``SynthParams.gap_scale``; the offsets between
+the two instruments keep their sizes, as the instruments do. A press target or a visit that fails is redrawn a few
 times and then left out (instrument 2 waits where it is, or lifts out of the way).
 """
 
@@ -54,8 +56,8 @@ import numpy as np
 
 from contact_viz.synth.motion import (
     _AXIS_JITTER, _CLEARANCE_M, _JAW_CLEARANCE_M, LAYOUTS, ToolTrack, _State, _draw_target, _ease,
-    _height_clearance, _jaw_geometry, _tool_centres, _tool_samples, mean_tool_axis, plan_tool_track,
-    tissue_displacement_frames, track_from_states, with_elevation,
+    _height_clearance, _jaw_geometry, _tool_centres, _tool_samples, mean_tool_axis, near_limit_m, nearest_in_view_m,
+    plan_tool_track, scaled, tissue_displacement_frames, track_from_states, with_elevation,
 )
 from contact_viz.synth.params import STREAM_MOTION_2, SynthParams, stream_rng
 from contact_viz.synth.scene import (
@@ -67,6 +69,7 @@ from contact_viz.synth.tools import cast_tools, tool_distance, tool_primitives
 _NEAR_MISS_PX = 4.0  # image gap between the two silhouettes during a near miss (analytic), px
 _BAND_PX = 12  # the near-miss search looks at pixels this close to instrument 1, px
 _TOOL_CLEARANCE_M = 0.001  # smallest 3D distance between the two instruments (their capsules), m
+# Heights above the tissue, m (times SynthParams.gap_scale, like the gaps of SynthParams):
 _LIFT_M = 0.02  # gap along its axis at which instrument 2 moves between places, m
 _NEAR_HOVER_M = (0.004, 0.007, 0.010, 0.014, 0.019, 0.025)  # hover heights tried for a near miss, m
 _CROSS_HEIGHT_M = (0.008, 0.011, 0.014, 0.018, 0.022, 0.026, 0.030)  # heights tried for a crossing, m
@@ -81,7 +84,9 @@ _OFFSET_MAX_M = 0.03  # largest sideways offset tried for a near miss, m
 # visit, tried in turn: image left (instrument 2's own side), down-left, down, up-left, right.
 _SIDES = ((-1.0, 0.0), (-math.sqrt(0.5), math.sqrt(0.5)), (0.0, 1.0), (-math.sqrt(0.5), -math.sqrt(0.5)), (1.0, 0.0))
 _PRESS_TRIES = 4  # press targets tried per press, count
-_TARGET_AWAY_M = 0.012  # a press target of instrument 2 stays this far from instrument 1's tip (in the plane), m
+# a press target of instrument 2 stays this far from instrument 1's tip in the plane, phantom units (it scales
+# with the phantom: the 3D clearance check keeps the instruments apart)
+_TARGET_AWAY_M = 0.012
 _VIEW_MARGIN = 0.05  # instrument 2's tip stays this fraction of the image size inside it during visits, -
 # Durations of instrument 2's moves (s): nominal and shortest (a press squeezed into a short slot).
 _MOVE_S, _DESCEND_S, _HOVER_S, _PRESS_S, _HOLD_S, _RETRACT_S = 0.35, 0.25, 0.1, 0.25, (0.2, 0.5), 0.25
@@ -126,8 +131,16 @@ class _Planner:
         self.keys: list[_Key] = []
         self.follows: list[_Follow] = []
         tu, tv, _ = self.frame.to_tissue(first.tip_center_m)
-        self.first_foot = np.stack([tu, tv], axis=1)  # instrument 1's tip over the base plane, (F, 2) m
+        self.first_foot = np.stack([tu, tv], axis=1)  # instrument 1's tip over the base plane, (F, 2) phantom units
         self.first_target = None  # (u, v, axis) instrument 2 starts above (its first press)
+        # Heights at the session's gap_scale, m; the offsets between the instruments keep their sizes (the
+        # instruments do): a camera-frame length in the base plane is 1 / frame.scale phantom units.
+        g = params.gap_scale
+        self.lift_m = _LIFT_M * g
+        self.near_hover_m = tuple(h * g for h in _NEAR_HOVER_M)
+        self.cross_height_m = tuple(h * g for h in _CROSS_HEIGHT_M)
+        self.hover_gap_m = scaled(params.hover_gap_m, params)
+        self.near_m = near_limit_m(params)  # no visible part of instrument 2 nearer the camera, m
 
     # -- states and checks -------------------------------------------------------------------------
     def frames_of(self, seconds: float) -> int:
@@ -138,8 +151,8 @@ class _Planner:
                                    np.array(s.h), np.array(s.pull), s.axis)
         return c
 
-    def lifted(self, s: _State, h: float = _LIFT_M) -> _State:
-        return replace(s, h=max(h, s.h))
+    def lifted(self, s: _State, h: float | None = None) -> _State:
+        return replace(s, h=max(self.lift_m if h is None else h, s.h))
 
     def target_for_foot(self, foot: np.ndarray, h: float, axis: np.ndarray) -> tuple[float, float]:
         """The target (u, v) whose state at gap h puts the tip centre over ``foot`` (u, v) of the plane."""
@@ -181,6 +194,8 @@ class _Planner:
                 return False
         px = self.camera.project(c)
         if np.any(px < _VIEW_MARGIN * size) or np.any(px > (1 - _VIEW_MARGIN) * size):
+            return False
+        if nearest_in_view_m(self.params, self.camera, c, s.axis, False) < self.near_m:
             return False
         sight = np.linspace(0.0, 1.0 - 0.004 / np.linalg.norm(c), 40)[1:, None] * c
         return bool(np.all(_height_clearance(self.phantom, self.frame, sight) >= 0))
@@ -243,6 +258,8 @@ class _Planner:
             return False
         if np.any(track.contact & first.contact):
             return False
+        if np.any(nearest_in_view_m(self.params, self.camera, track.tip_center_m, track.axis, False) < self.near_m):
+            return False
         free = st["h"] > 0.001  # not pressing: the jaws keep off the tissue, the shaft and wrist clear it
         if not np.any(free):
             return True
@@ -287,14 +304,14 @@ class _Planner:
 
     def start(self) -> None:
         """Instrument 2 at frame 0: lifted above the target of its first press."""
-        hover = float(self.rng.uniform(*self.params.hover_gap_m))
+        hover = float(self.rng.uniform(*self.hover_gap_m))
         window = np.arange(min(self.params.frames, self.frames_of(1.0)))
         for _ in range(_PRESS_TRIES):
-            drawn = self.draw_press_target(window, hover, _LIFT_M)
+            drawn = self.draw_press_target(window, hover, self.lift_m)
             if drawn is None:
                 continue
             u, v, axis = drawn
-            keys = [_Key(0, _State(u, v, _LIFT_M, 0.0, 0.0, axis), "approach")]
+            keys = [_Key(0, _State(u, v, self.lift_m, 0.0, 0.0, axis), "approach")]
             if self.frames_ok(keys, [], 0, 1):
                 self.keys, self.first_target = keys, drawn
                 return
@@ -306,7 +323,7 @@ class _Planner:
         hold_s = float(self.rng.uniform(*_HOLD_S))
         light = self.rng.uniform() < self.params.light_press_prob
         depth = float(self.rng.uniform(*(self.params.light_press_depth_m if light else self.params.press_depth_m)))
-        hover = float(self.rng.uniform(*self.params.hover_gap_m))
+        hover = float(self.rng.uniform(*self.hover_gap_m))
         nominal = {"move": _MOVE_S, "descend": _DESCEND_S, "hover": _HOVER_S, "press": _PRESS_S, "hold": hold_s,
                    "retract": _RETRACT_S}
         frames = {k: self.frames_of(v) for k, v in nominal.items()}
@@ -330,11 +347,11 @@ class _Planner:
                 drawn = self.first_target
             else:
                 frames["move"] = frames["move"] or _MIN_FRAMES["move"]
-                drawn = self.draw_press_target(window, hover, _LIFT_M)
+                drawn = self.draw_press_target(window, hover, self.lift_m)
             if drawn is None:
                 break
             u, v, axis = drawn
-            lift = _State(u, v, _LIFT_M, 0.0, 0.0, axis)
+            lift = _State(u, v, self.lift_m, 0.0, 0.0, axis)
             hovering = _State(u, v, hover, 0.0, 0.0, axis)
             pressed = _State(u, v, -depth, 0.0, 0.0, axis)
             t = self.now
@@ -372,7 +389,7 @@ class _Planner:
         band = self.near_band(tool_primitives(self.first, m, self.params)) if kind == "near" else None
         if kind == "near" and band is None:
             return False
-        for h in _NEAR_HOVER_M if kind == "near" else _CROSS_HEIGHT_M:
+        for h in self.near_hover_m if kind == "near" else self.cross_height_m:
             for side in _SIDES if kind == "near" else _CROSS_PATHS:
                 axis = self.mean_axis + self.rng.normal(0.0, _AXIS_JITTER, 3)
                 axis /= np.linalg.norm(axis)
@@ -390,7 +407,7 @@ class _Planner:
                     _Key(hold_start - arrive // 2, self.lifted(a), "approach"),
                     _Key(hold_start, a, "approach"),
                     _Key(hold_end, b, "approach"),
-                    _Key(hold_end + depart, self.lifted(b, b.h + _LIFT_M), "approach"),
+                    _Key(hold_end + depart, self.lifted(b, b.h + self.lift_m), "approach"),
                 ]
                 follows = [_Follow(hold_start - arrive // 2, hold_start, hold_end, hold_end + depart, m)] \
                     if kind == "near" else []
@@ -441,7 +458,7 @@ class _Planner:
 
         # Scan the offset for the farthest step from a gap below _NEAR_MISS_PX to one at or above it
         # (instrument 2 on the ``side`` side of instrument 1), then bisect that step.
-        offsets = np.linspace(-_OFFSET_MAX_M, _OFFSET_MAX_M, 9)
+        offsets = np.linspace(-_OFFSET_MAX_M, _OFFSET_MAX_M, 9) / self.frame.scale
         above = [self.image_gap(band, state(d)) >= _NEAR_MISS_PX for d in offsets]
         steps = [i for i in range(len(offsets) - 1) if not above[i] and above[i + 1]]
         if not steps:
@@ -468,7 +485,7 @@ class _Planner:
         forward, start, end = path
         states = []
         for sideways in (start, end):
-            foot = self.first_foot[m] + forward * ahead + sideways * across
+            foot = self.first_foot[m] + (forward * ahead + sideways * across) / self.frame.scale
             u, v = self.target_for_foot(foot, h, axis)
             s = self.raised(u, v, h, axis, m)
             if not self.pose_ok(s, m):
@@ -503,7 +520,7 @@ class _Planner:
             return
         if self.commit_if_ok([_Key(t, self.current, "approach")]):
             return
-        up = self.lifted(self.current, self.current.h + _LIFT_M)
+        up = self.lifted(self.current, self.current.h + self.lift_m)
         step = min(self.frames_of(_DEPART_S), t - self.now)
         keys = [_Key(self.now + step, up, "approach")] + ([_Key(t, up, "approach")] if t > self.now + step else [])
         if self.commit_if_ok(keys):

@@ -6,14 +6,16 @@ against-mask checks (``mask_on_tissue``, ``tool_depth_outside``, ``depth_holes``
 stereo checks (``tool_width``, ``stereo_residual``), ``frozen_depth``, and the patch's own
 (``bad_frame``, ``no_patch``, ``distance_jump``); with several instruments each is checked on its own
 (its messages start "tool <id>: ") and against the others (``id_swap``, ``tools_merged``). Session
-checks (``force_lag``, ``frame_times``) run once at the end (:meth:`DiagnosticsTracker.finish`). The
-same :class:`FrameChecker` and measurements serve ``contact-viz check``, so the viewer and the command
-flag the same frames.
+checks (``force_lag``, ``frame_times``, ``not_rectified``: the vertical offset between left and right,
+measured on frames sampled from those shown) run once at the end (:meth:`DiagnosticsTracker.finish`) and
+are logged at the last frame shown. The same :class:`FrameChecker` and measurements serve
+``contact-viz check``, so the viewer and the command flag the same frames.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,11 +53,12 @@ class DiagnosticsTracker:
     """
 
     def __init__(self, params: DiagnosticParams = DiagnosticParams(), *, fx_px: float = math.nan,
-                 baseline_m: float = math.nan, image_width: int = 1920, depth_source: DepthSource = "depth") -> None:
+                 baseline_m: float = math.nan, image_width: int = 1920, depth_source: DepthSource = "depth",
+                 stems: Sequence[str] = ()) -> None:
         self.params = params
         self.fx_px = fx_px
         self.baseline_m = baseline_m
-        self.checker = FrameChecker(params, image_width, depth_source)
+        self.checker = FrameChecker(params, image_width, depth_source, stems=stems)
         self.counts: dict[str, int] = dict.fromkeys({**DIAGNOSTIC_CODES, **SESSION_DIAGNOSTIC_CODES}, 0)
         self.fired_frames: dict[str, list[int]] = {}
         self.frames = 0
@@ -88,7 +91,11 @@ class DiagnosticsTracker:
         return FrameDiagnostics(fired, scores, ev)
 
     def finish(self, session, indices) -> list[Diagnostic]:
-        """The session checks over the frames seen (force lag needs force; frame times), at the last frame."""
+        """The session checks over the frames seen (force lag needs force; frame times; left and right
+        rectified, which needs right images), at the last frame."""
+        from contact_viz.console import frame_name
+        from contact_viz.pipeline.check import rectification_offset
+
         out: list[Diagnostic] = []
         idx = np.asarray(list(indices), dtype=np.int64)
         if idx.size == 0:
@@ -110,10 +117,16 @@ class DiagnosticsTracker:
             self.fired_frames["force_lag"] = [int(i) for i in idx]
         gaps = frame_time_problems(times, self.params)
         if gaps:
+            first = frame_name(int(idx[gaps[0]]), session.stems)
             out.append(Diagnostic("frame_times", last, f"{len(gaps)} frame(s) with a time step <= 0 or a gap, first at "
-                                                       f"frame {int(idx[gaps[0]])}: {SESSION_CHECKS['frame_times'][1]}",
+                                                       f"frame {first}: {SESSION_CHECKS['frame_times'][1]}",
                                   float(len(gaps))))
             self.fired_frames["frame_times"] = [int(idx[g]) for g in gaps]
+        offset = rectification_offset(session, self.params, [int(i) for i in idx])
+        if offset is not None and offset.fired:
+            out.append(Diagnostic("not_rectified", last, f"{offset.message()}: {SESSION_CHECKS['not_rectified'][1]}",
+                                  offset.offset_px))
+            self.fired_frames["not_rectified"] = [int(i) for i in idx]
         for diagnostic in out:
             self.counts[diagnostic.code] = len(self.fired_frames[diagnostic.code])
         return out

@@ -28,7 +28,7 @@ import rerun as rr
 
 from contact_viz.io.live import FollowParams, SessionFollower
 from contact_viz.io.session import BadFrame
-from contact_viz.pipeline.extract import BadFrameWarning, FrameResult, frame_patches
+from contact_viz.pipeline.extract import BadFrameWarning, FrameResult, session_frame_patches
 from contact_viz.viz import rerun_log
 from contact_viz.viz.entities import ENTITY_SERIES_LAG
 from contact_viz.viz.frame_log import FrameLogger
@@ -300,7 +300,7 @@ def _result(session, index: int, options: DebuggerOptions) -> FrameResult:
     if isinstance(frame, BadFrame):
         warnings.warn(f"frame {frame.stem} skipped: {frame.reason}", BadFrameWarning, stacklevel=2)
         return FrameResult(frame, None)
-    return FrameResult(frame, *frame_patches(frame, options.patch_params, session.object_ids))
+    return FrameResult(frame, *session_frame_patches(session, frame, options.patch_params))
 
 
 def _log_force(rec, session, rows: list[dict[str, str]]) -> list[dict[str, str]]:

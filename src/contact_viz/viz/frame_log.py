@@ -44,7 +44,8 @@ class InstrumentPosteriors:
     frame: the same recursion bit for bit). The scene's posterior is the max over the instruments in the frame;
     in a frame without any, the max over every instrument seen so far (their one-step predictions), or the
     no-instrument filter's before the first. With one instrument it is that instrument's posterior: exactly
-    a single StreamingFilter on ``FrameResult.patch.signal``.
+    a single StreamingFilter on ``FrameResult.patch.signal``. After an update, ``evidence`` holds each instrument
+    in the frame's emission log-likelihood ratio ({object id: nats}, NaN without a patch): what its filter added.
     """
 
     def __init__(self, ensemble) -> None:
@@ -190,7 +191,8 @@ class FrameLogger:
         self._hint_logged = model is not None
         self.tracker = DiagnosticsTracker(options.diagnostics, fx_px=float(self.K[0, 0]),
                                           baseline_m=float(session.calibration.baseline_m),
-                                          image_width=session.image_size[1], depth_source=session.depth_source)
+                                          image_width=session.image_size[1], depth_source=session.depth_source,
+                                          stems=tuple(session.stems))
         self.pose_of = _pose_samples(session, options)  # (n,) pose row per frame (-1 none), or None
         self.stream = None if model is None else InstrumentPosteriors(model.ensemble)
         selected = getattr(session, "object_ids", None)
@@ -346,4 +348,6 @@ class FrameLogger:
             contact_frames=dict(sorted(self.contact_frames.items())),
             closest=self.closest,
             with_model=self.model is not None,
+            frame_stems=tuple(self.session.stems),
+            session_messages={d.code: d.message for d in session_checks},
         )

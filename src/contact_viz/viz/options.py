@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from contact_viz.checks.params import DiagnosticParams
+from contact_viz.console import frame_name, frames_text
 from contact_viz.geometry.pointcloud import CloudParams
 from contact_viz.io.decoders import JPEG_REDUCTIONS
 from contact_viz.params import PatchParams, check_fields, checked
@@ -79,6 +80,8 @@ class RunSummary:
     closest: tuple[int, float, int] | None = None  # (object id, distance mm, frame): the run's smallest |distance|
     with_model: bool = False  # the run had a model (contact_frames is meaningful)
     stop_signal: int = 0  # the signal that stopped the run (SIGINT 2, SIGTERM 15, SIGHUP 1), 0 if none
+    frame_stems: tuple[str, ...] = ()  # the session's frame stems (index -> stem): frames are named by them
+    session_messages: dict[str, str] = field(default_factory=dict)  # session check code that fired -> its message
 
     @property
     def nearest_instrument(self) -> int | None:
@@ -104,7 +107,7 @@ class RunSummary:
             if self.closest is not None:
                 tool, distance_mm, frame = self.closest
                 who = f"instrument {tool}, " if len(self.instrument_frames) > 1 else ""
-                text += f"; closest: {who}{distance_mm:.1f} mm at frame {frame}"
+                text += f"; closest: {who}{distance_mm:.1f} mm at frame {frame_name(frame, self.frame_stems)}"
             out.append(text)
         elif self.instrument_frames:
             out.append("nearest instrument: none (no frame had a distance)")
@@ -142,9 +145,10 @@ class RunSummary:
             out.append("diagnostics:")
             for code, n in fired.items():
                 runs = self.diagnostic_ranges.get(code, [])
-                text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:8])
-                more = f", ... ({len(runs)} ranges)" if len(runs) > 8 else ""
-                out.append(f"  {code} on {n} frame{'s' * (n != 1)}" + (f": {text}{more}" if text else ""))
+                text = frames_text(runs, self.frame_stems, 8)
+                if code in self.session_messages and n == self.frames:  # a session check, on every frame shown
+                    text = self.session_messages[code]
+                out.append(f"  {code} on {n} frame{'s' * (n != 1)}" + (f": {text}" if text else ""))
         else:
             out.append("diagnostics: none fired")
         return out

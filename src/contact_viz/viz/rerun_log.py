@@ -393,12 +393,12 @@ class CheckLines:
 
 
 def _log_diagnostics(rec: rr.RecordingStream, diagnostics: Sequence[Diagnostic], notes: Sequence[str],
-                     scores: dict | None = None, lines: CheckLines | None = None) -> None:
+                     scores: dict | None = None, lines: CheckLines | None = None, stem: str = "") -> None:
     (lines or CheckLines()).log(rec, scores)
     for diagnostic in diagnostics:
         _log_series(rec, diagnostic_entity(diagnostic.code), marker_height(diagnostic.code))
         if diagnostic.code != "bad_frame":  # log_bad_frame writes that one's text
-            rec.log(ENTITY_LOG, rr.TextLog(f"frame {diagnostic.index}: {diagnostic.message}",
+            rec.log(ENTITY_LOG, rr.TextLog(f"frame {stem or diagnostic.index}: {diagnostic.message}",
                                            level=rr.TextLogLevel.WARN))
     for note in notes:
         rec.log(ENTITY_LOG, rr.TextLog(note, level=rr.TextLogLevel.WARN))
@@ -430,7 +430,7 @@ def log_frame(rec: rr.RecordingStream, result, view: FrameView, instruments: Ins
     _log_contact(rec, view.posterior, view.predicted)
     if view.contact_text is not None:
         rec.log(ENTITY_CONTACT, rr.TextDocument(view.contact_text, media_type=rr.MediaType.MARKDOWN))
-    _log_diagnostics(rec, view.diagnostics, view.notes, view.diagnostic_scores, lines)
+    _log_diagnostics(rec, view.diagnostics, view.notes, view.diagnostic_scores, lines, frame.stem)
     _log_evidence(rec, view.evidence if any(d.code in EVIDENCE_CHECKS for d in view.diagnostics) else None,
                   frame.tool_mask.shape)
 
@@ -631,4 +631,4 @@ def log_bad_frame(
     _log_contact(rec, posterior, predicted)
     if contact_text is not None:
         rec.log(ENTITY_CONTACT, rr.TextDocument(f"**{contact_text}**", media_type=rr.MediaType.MARKDOWN))
-    _log_diagnostics(rec, diagnostics, (), None, lines)
+    _log_diagnostics(rec, diagnostics, (), None, lines, frame.stem)

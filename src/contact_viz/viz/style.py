@@ -214,6 +214,7 @@ DIAGNOSTIC_STYLES: dict[str, SeriesStyle] = {
     "distance_jump": SeriesStyle("distance jump", VERMILLION, 6.0),
     "force_lag": SeriesStyle("force out of sync", ORANGE, 6.0),
     "frame_times": SeriesStyle("frame time gaps", GREY, 6.0),
+    "not_rectified": SeriesStyle("left and right not rectified", BLUE, 6.0),
 }
 
 
