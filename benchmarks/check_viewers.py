@@ -47,8 +47,8 @@ both instruments are in view and one is in contact, away from the failure. It as
   median pixel difference from the file (image_difference) at most IMAGE_DIFF_MAX (so is (c)'s: no stale layer);
 - (b) the evidence is drawn: a flagged frame's left image (the grey still with the stereo residual in colour, at 0.7
   opacity) at most EVIDENCE_DIM times as saturated as (a)'s (measured: half);
-- (c) each instrument's colour (`instrument_style(k).window`) in the left image pane (its patch box), the distance pane
-  and the signal pane (its lines), and the ground truth's yellow in the contact plot: colour_share within COLOUR_TOL
+- (c) each instrument's colour (`instrument_style(k).window`) in the left image pane (its patch box), the distance,
+  signal and evidence panes (its lines), and the ground truth's yellow in the contact plot: colour_share within COLOUR_TOL
   at least MIN_SHARE of the pane (a third or so of the least share measured at both sizes; more than a legend's dot).
 
 It takes about 2 minutes (measured 122 s: the data 17 s, 2 s reused; each size about 50 s). The assertions fail
@@ -56,7 +56,8 @@ where they must: `--rrd` of the same session recorded by the code before the vie
 fixes (commit a009908) gives "2 of 11 assertions hold" at 1280x720: the evidence of frame 24 stays on the clean
 frame 25 (saturation 0.16 of its file's, median difference 52) and on frame 49 (54), instrument 1 is missing from
 the distance and signal panes and instrument 2 from the left pane (drawn in other colours), the truth from the
-contact pane; the current code: 22 of 22 at both sizes.
+contact pane (measured before the evidence plot was added, whose two assertions per size such a recording also
+fails: it has no evidence plot); the current code: 26 of 26 at both sizes.
 
 Setting the time. A `#when=frame@35` fragment (Rerun's link to a time) is ignored by the 0.41 web viewer: on a
 served .rrd (`?url=http://.../s.rrd#when=frame@35`, or the fragment inside the `url=` value) the viewer plays
@@ -151,34 +152,33 @@ PANE_NAMES: dict[int, tuple[str, ...]] = {
     9: ("left", "right", "depth", "3d", "distance", "signal", "force", "contact", "diagnostics"),
     # the same with a text pane ("contact": which instrument is in contact) beside the 3D scene
     10: ("left", "right", "depth", "3d", "contact_text", "distance", "signal", "force", "contact", "diagnostics"),
+    # with a model: the evidence for contact (each instrument's log-likelihood ratio) beneath the contact plot
+    11: ("left", "right", "depth", "3d", "contact_text", "distance", "signal", "force", "contact", "evidence",
+         "diagnostics"),
 }
 # Where the default blueprint puts its panes (each with its title bar), as fractions of the viewer window,
 # measured by measure_panes on the web viewer in Chromium (this script prints them after each run; update them
 # from there when the layout changes). They depend a little on the window size, as the viewer's top bar (36 px),
-# time panel (30 px) and title bars (28 px) do not scale. PANES_BY_SIZE: the layout of blueprint.py as of
-# 2026-11-28 (10 panes: the contact text pane beside the 3D scene); PANES_BEFORE_BY_SIZE: the one before it
-# (9 panes), which older recordings carry.
+# time panel (30 px) and title bars (28 px) do not scale. PANES_BY_SIZE: the layout of blueprint.py with a model
+# (11 panes: the contact text pane beside the 3D scene, the evidence plot beneath the contact plot; without a
+# model there is no evidence plot, and measure_panes finds that layout on the screenshot); PANES_BEFORE_BY_SIZE:
+# an earlier one (9 panes), which older recordings carry.
 PANES_BY_SIZE: dict[tuple[int, int], dict[str, Rect]] = {
     (1280, 720): {
         "left": (0.0, 0.05, 0.3992, 0.5042), "right": (0.4, 0.05, 0.5992, 0.2764),
         "depth": (0.4, 0.2778, 0.5992, 0.5042), "3d": (0.0, 0.5056, 0.4492, 0.9597),
-        "contact_text": (0.45, 0.5056, 0.5992, 0.9597), "distance": (0.6, 0.05, 1.0, 0.2583),
-        "signal": (0.6, 0.2597, 1.0, 0.4167), "force": (0.6, 0.4181, 1.0, 0.5569),
-        "contact": (0.6, 0.5583, 1.0, 0.75), "diagnostics": (0.6, 0.7514, 1.0, 0.9597),
-    },
-    (1600, 900): {
-        "left": (0.0, 0.04, 0.3994, 0.5033), "right": (0.4, 0.04, 0.5994, 0.2711),
-        "depth": (0.4, 0.2722, 0.5994, 0.5033), "3d": (0.0, 0.5044, 0.4494, 0.9678),
-        "contact_text": (0.45, 0.5044, 0.5994, 0.9678), "distance": (0.6, 0.04, 1.0, 0.2533),
-        "signal": (0.6, 0.2544, 1.0, 0.4144), "force": (0.6, 0.4156, 1.0, 0.5567),
-        "contact": (0.6, 0.5578, 1.0, 0.7533), "diagnostics": (0.6, 0.7544, 1.0, 0.9678),
+        "contact_text": (0.45, 0.5056, 0.5992, 0.9597), "distance": (0.6, 0.05, 1.0, 0.2306),
+        "signal": (0.6, 0.2319, 1.0, 0.3681), "force": (0.6, 0.3694, 1.0, 0.4889),
+        "contact": (0.6, 0.4903, 1.0, 0.6556), "evidence": (0.6, 0.6569, 1.0, 0.7778),
+        "diagnostics": (0.6, 0.7792, 1.0, 0.9597),
     },
     (1920, 1080): {
         "left": (0.0, 0.0333, 0.3995, 0.5028), "right": (0.4, 0.0333, 0.5995, 0.2676),
         "depth": (0.4, 0.2685, 0.5995, 0.5028), "3d": (0.0, 0.5037, 0.4495, 0.9731),
-        "contact_text": (0.45, 0.5037, 0.5995, 0.9731), "distance": (0.6, 0.0333, 1.0, 0.2491),
-        "signal": (0.6, 0.25, 1.0, 0.412), "force": (0.6, 0.413, 1.0, 0.5574),
-        "contact": (0.6, 0.5583, 1.0, 0.7565), "diagnostics": (0.6, 0.7574, 1.0, 0.9731),
+        "contact_text": (0.45, 0.5037, 0.5995, 0.9731), "distance": (0.6, 0.0333, 1.0, 0.2204),
+        "signal": (0.6, 0.2213, 1.0, 0.362), "force": (0.6, 0.363, 1.0, 0.487),
+        "contact": (0.6, 0.488, 1.0, 0.6593), "evidence": (0.6, 0.6602, 1.0, 0.7852),
+        "diagnostics": (0.6, 0.7861, 1.0, 0.9731),
     },
 }
 PANES_BEFORE_BY_SIZE: dict[tuple[int, int], dict[str, Rect]] = {
@@ -1124,9 +1124,9 @@ EVIDENCE_DIM = 0.75  # (b): a flagged frame's left image at most this times (a)'
 IMAGE_DIFF_MAX = 8.0  # (a), (c): median |screen - file| of the left image at most this, 0-255 (measured 2)
 COLOUR_TOL = 30  # tolerance of colour_share for the instrument and truth colours (anti-aliased edges), 0-255
 # (c): the least share of a pane's pixels (under its title bar) in an instrument's colour (left image: its patch
-# box; distance and signal: its line) and in the truth's yellow (contact plot): about a third of the least measured
+# box; distance, signal and evidence: its line) and in the truth's yellow (contact plot): about a third of the least measured
 # at 1280x720 and 1920x1080, and above what a legend's colour dot alone covers
-MIN_SHARE = {"left": 0.00006, "distance": 0.003, "signal": 0.004, "contact": 0.006}
+MIN_SHARE = {"left": 0.00006, "distance": 0.003, "signal": 0.004, "evidence": 0.003, "contact": 0.006}
 MIN_IN_VIEW = 0.005  # (c): an instrument is in view when its mask covers at least this share of the image
 
 
@@ -1225,6 +1225,9 @@ def colour_assertions(shot: np.ndarray, frame: int, colours: Sequence[tuple[str,
     out = []
     for name, rgb, where in colours:
         for pane in where:
+            if pane not in panes:  # a recording without that plot (the evidence plot of an older recording)
+                out.append(Assertion(f"(c) frame {frame}: {name} in the {pane} pane", "no such pane", False))
+                continue
             share = colour_share(crop(shot, pane_body(panes[pane], size[1])), rgb, COLOUR_TOL)
             out.append(Assertion(f"(c) frame {frame}: {name} in the {pane} pane",
                                  f"share {share:.5f}, at least {MIN_SHARE[pane]:g} (tolerance {COLOUR_TOL})",
@@ -1234,11 +1237,12 @@ def colour_assertions(shot: np.ndarray, frame: int, colours: Sequence[tuple[str,
 
 def expected_colours(n_tools: int) -> list[tuple[str, tuple[int, ...], tuple[str, ...]]]:
     """The colours (c) looks for: each instrument's (its patch box in the left image, its distance and signal
-    lines) and the ground truth's yellow (the contact plot), from contact_viz.viz.style."""
+    lines, with the model --check records with its evidence line) and the ground truth's yellow (the contact plot),
+    from contact_viz.viz.style."""
     from contact_viz.viz.style import SERIES_STYLES, instrument_style
 
     colours = [(f"instrument {k} ({instrument_style(k).colour_name})", instrument_style(k).window[:3],
-                ("left", "distance", "signal")) for k in range(1, n_tools + 1)]
+                ("left", "distance", "signal", "evidence")) for k in range(1, n_tools + 1)]
     return colours + [("truth (yellow)", SERIES_STYLES["contact_truth"].rgba[:3], ("contact",))]
 
 

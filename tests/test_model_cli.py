@@ -164,7 +164,7 @@ def test_model_file_round_trip(tmp_path):
 
 
 def test_grid_search_recipe_best_params_feed_fit(study, tmp_path):
-    """The recipe's best grid point, refitted through `fit --params`, reproduces its OOF score.
+    """The recipe's best grid point, refitted through `fit --params --model-kind paper`, reproduces its OOF score.
 
     The recipe computes distances with the shared-stage grid code; `fit` extracts them with
     compute_patch one parameter set at a time: the pooled out-of-fold F1 must agree.
@@ -180,7 +180,7 @@ def test_grid_search_recipe_best_params_feed_fit(study, tmp_path):
     assert chosen["grid_search"]["grid_points"] == 8
     model_path = tmp_path / "model.json"
     run("fit", *map(str, study["train"]), "--params", str(best), "-o", str(model_path),
-        "--cache-dir", str(tmp_path / "cache"))
+        "--cache-dir", str(tmp_path / "cache"), "--model-kind", "paper")  # the recipe scores with the paper's HMM
     model = load_model(model_path)
     assert {k: getattr(model.patch_params, k) for k in ("n1", "n2", "tau_tool", "tau_patch")} == \
         {k: chosen["patch_params"][k] for k in ("n1", "n2", "tau_tool", "tau_patch")}
@@ -194,3 +194,59 @@ def test_grid_search_recipe_best_params_feed_fit(study, tmp_path):
     keep = y >= 0
     assert f1_score(y[keep], p[keep] >= ens.threshold_) == pytest.approx(chosen["grid_search"]["best_oof_f1"], abs=1e-12)
     assert average_precision_score(y[keep], p[keep]) == pytest.approx(chosen["grid_search"]["best_oof_auprc"], abs=1e-12)
+
+
+# ------------------------------------------------------------------ model kinds (issue 34)
+
+
+def test_fit_records_the_model_kind_and_model_kind_selects_one(study, tmp_path):
+    from contact_viz.model.hmm import HMMParams
+    from contact_viz.model.kinds import FIT_DEFAULT_KIND
+    from contact_viz.params import PatchParams as Params
+    from contact_viz.pipeline.features import fit_loso, load_features
+
+    default = json.loads(Path(study["model"]).read_text())
+    assert default["model_kind"] == FIT_DEFAULT_KIND
+    assert {m["params"]["model_kind"] for m in default["ensemble"]["models"]} == {FIT_DEFAULT_KIND}
+    features = load_features(study["train"], Params(), cache_dir=study["cache"])
+    for kind in ("paper", "tied"):
+        out = tmp_path / f"{kind}.json"
+        done = run("fit", *map(str, study["train"]), "-o", str(out), "--cache-dir", str(study["cache"]),
+                   "--model-kind", kind)
+        assert f"({kind})" in done.stdout
+        model = load_model(out)
+        assert model.model_kind == kind and json.loads(out.read_text())["model_kind"] == kind
+        # the same ensemble as fitting that kind through the library
+        direct = fit_loso(features, HMMParams(model_kind=kind))
+        assert model.threshold == direct.threshold_
+        np.testing.assert_array_equal(model.predict_proba(features[0].signal), direct.predict_proba(features[0].signal))
+    done = run("fit", *map(str, study["train"]), "-o", str(tmp_path / "x.json"), "--model-kind", "gaussian", ok=False)
+    assert done.returncode == 2 and "--model-kind must be one of paper, flat, tied, isotonic, clip" in done.stderr
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_a_model_file_without_model_kind_loads_as_the_papers(tmp_path):
+    """A model.json written before the kinds existed: no "model_kind", HMMParams without it, no emission."""
+    rng = np.random.default_rng(1)
+    signals, labels = [], []
+    for _ in range(3):
+        y = (np.sin(np.arange(200) / 15) > 0).astype(np.int8)
+        signals.append(np.where(y == 1, 3.0, 1.8) + rng.normal(0, 0.3, 200))
+        labels.append(y)
+    ens = LosoEnsemble().fit(signals, labels, session_names=["a", "b", "c"])
+    data = json.loads(save_model(ContactModel(ens, PatchParams(), LabelParams(), ()), tmp_path / "new.json").read_text())
+    old = json.loads(json.dumps(data))
+    del old["model_kind"]
+    for params in [old["ensemble"]["params"]] + [m["params"] for m in old["ensemble"]["models"]]:
+        assert params.pop("model_kind") == "paper"
+        params.pop("calibration_min_prob")
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    back = load_model(tmp_path / "old.json")
+    assert back.model_kind == "paper"
+    np.testing.assert_array_equal(back.predict_proba(signals[0]), ens.predict_proba(signals[0]))
+    mixed = json.loads(json.dumps(data))
+    mixed["model_kind"] = "flat"
+    (tmp_path / "mixed.json").write_text(json.dumps(mixed))
+    with pytest.raises(ValueError, match=r"mixed.json: malformed model.json .*model_kind is 'flat' but the "
+                                         r"ensemble holds 'paper'"):
+        load_model(tmp_path / "mixed.json")

@@ -29,6 +29,7 @@ from contact_viz.cli_common import (
     _write_evaluation,
 )
 from contact_viz.cli_edge import EdgeGroup
+from contact_viz.model.kinds import FIT_DEFAULT_KIND
 
 app = typer.Typer(
     cls=EdgeGroup,  # bad input: one error line and exit 2 (contact_viz.cli_edge)
@@ -236,6 +237,8 @@ def fit(
     contact_force: ContactForce = 2.0,
     object_ids: ObjectId = None,
     cache_dir: CacheDir = None,
+    model_kind: Annotated[str, typer.Option(
+        help="The HMM's emission (docs/method.md): clip (the paper's Gaussians on the signal clipped to the training range and the rising side of their ratio: a nearer tool is never less evidence of contact), paper (the paper's six-parameter HMM, exact: its contact Gaussian is the narrower, so a tool nearer than the contact mean reads as less in contact), tied (one variance for both states), flat (the paper's with the contact density held flat above its mean and the no-contact one below its mean) or isotonic (a calibrated monotone likelihood ratio)")] = FIT_DEFAULT_KIND,
 ) -> None:
     """Fit the leave-one-session-out HMM ensemble and its threshold on training sessions.
 
@@ -243,9 +246,13 @@ def fit(
     contact the instrument nearest the tissue gets contact and the others none (unless labels.csv
     labels each instrument: frame,tool,contact); the threshold is chosen on the scene posterior."""
     from contact_viz.console import check_output_file, session_training_problem
+    from contact_viz.model.hmm import HMMParams
+    from contact_viz.model.kinds import MODEL_KINDS
     from contact_viz.model.model_file import ContactModel, save_model
     from contact_viz.pipeline.features import fit_loso
 
+    if model_kind not in MODEL_KINDS:
+        _fail(f"--model-kind must be one of {', '.join(MODEL_KINDS)}; got {model_kind!r}")
     params, label_params = _resolve_params(params_file, contact_force)
     if len(train_sessions) < 2:
         _fail(f"fit needs at least 2 training sessions for leave-one-session-out, got {len(train_sessions)}")
@@ -256,7 +263,7 @@ def fit(
     if problem:
         _fail(problem)
     try:
-        ensemble = fit_loso(features)
+        ensemble = fit_loso(features, HMMParams(model_kind=model_kind))
     except ValueError as exc:
         _fail(str(exc))
     model = ContactModel(
@@ -264,11 +271,12 @@ def fit(
         training_sessions=tuple(f.training_entry(str(p.resolve())) for f, p in zip(features, train_sessions)),
     )
     save_model(model, output)
-    typer.echo(f"{output}: {len(features)} LOSO models, threshold {model.threshold:.4f}")
+    typer.echo(f"{output}: {len(features)} LOSO models ({model_kind}), threshold {model.threshold:.4f}")
     for hmm, name in zip(ensemble.models_, ensemble.session_names_):
         m, v, a = hmm.means_, hmm.vars_, hmm.transmat_
-        typer.echo(f"  without {name}: means {m[0]:.3f} / {m[1]:.3f}, sd {v[0] ** 0.5:.3f} / {v[1] ** 0.5:.3f}, "
-                   f"stay {a[0, 0]:.3f} / {a[1, 1]:.3f}")
+        tied = f" (tied {hmm.emission_.var_ ** 0.5:.3f})" if model_kind == "tied" else ""
+        typer.echo(f"  without {name}: means {m[0]:.3f} / {m[1]:.3f}, sd {v[0] ** 0.5:.3f} / {v[1] ** 0.5:.3f}"
+                   f"{tied}, stay {a[0, 0]:.3f} / {a[1, 1]:.3f}")
 
 
 @app.command()

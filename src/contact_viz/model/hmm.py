@@ -10,6 +10,12 @@ Conventions follow hmmlearn: fitted attributes carry a trailing underscore (``me
 ``vars_``, ``transmat_``, ``startprob_``). Unlike hmmlearn, ``predict_proba`` returns the
 *causally filtered* posterior P(contact | x_1..x_t), shape (T,), not the smoothed (T, 2) one.
 
+Model kinds (``HMMParams.model_kind``, :mod:`contact_viz.model.emission`): the paper's Gaussian
+emissions (``"paper"``, the default here, exact) or a kind whose emission log-likelihood ratio never
+falls as the signal rises; every kind shares the transitions, the start distribution and the forward
+filter (:func:`forward_filter_llr`). The monotone kinds need a persistent chain,
+P(contact | contact) >= P(contact | no contact), which ``fit`` and ``from_dict`` enforce.
+
 Several instruments (one signal sequence each, see :mod:`contact_viz.model.instruments`):
 ``LosoEnsemble.fit`` takes a session's instrument sequences and chooses the threshold on its scene
 posterior; :class:`SceneStreamingFilter` filters them frame by frame.
@@ -26,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from contact_viz.model.emission import EMISSIONS, MODEL_KINDS, PAPER_KIND, emission_log_likelihood_ratio
 from contact_viz.model.instruments import scene_posterior
 from contact_viz.params import check_fields, checked
 from contact_viz.params import from_dict as _params_from_dict
@@ -45,6 +52,10 @@ class HMMParams:
 
     # lower bound on each state's emission variance, dec^2 (signal units squared)
     var_floor: float = checked(1e-6, gt=0)
+    # the emission of contact_viz.model.emission: "paper" (Gaussians, the paper's HMM) or a monotone kind
+    model_kind: str = checked(PAPER_KIND, choices=MODEL_KINDS)
+    # model kind "isotonic": P(contact | signal) kept within [this, 1 - this], probability
+    calibration_min_prob: float = checked(0.01, gt=0, lt=0.5)
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -87,12 +98,17 @@ def _check_model(means: Any, vars: Any, transmat: Any, startprob: Any) -> tuple[
     """Validated float64 copies of the four parameter arrays of a two-state model."""
     means_a = np.asarray(means, dtype=np.float64)
     vars_a = np.asarray(vars, dtype=np.float64)
-    trans_a = np.asarray(transmat, dtype=np.float64)
-    start_a = np.asarray(startprob, dtype=np.float64)
     if means_a.shape != (N_STATES,) or not np.isfinite(means_a).all():
         raise ValueError(f"means: expected 2 finite values (dec), got {means_a.tolist()}")
     if vars_a.shape != (N_STATES,) or not (np.isfinite(vars_a).all() and (vars_a > 0).all()):
         raise ValueError(f"vars: expected 2 finite values > 0 (dec^2), got {vars_a.tolist()}")
+    return (means_a, vars_a, *_check_chain(transmat, startprob))
+
+
+def _check_chain(transmat: Any, startprob: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float64 copies of a two-state transition matrix and start distribution."""
+    trans_a = np.asarray(transmat, dtype=np.float64)
+    start_a = np.asarray(startprob, dtype=np.float64)
     if (
         trans_a.shape != (N_STATES, N_STATES)
         or not np.isfinite(trans_a).all()
@@ -107,7 +123,7 @@ def _check_model(means: Any, vars: Any, transmat: Any, startprob: Any) -> tuple[
         or not math.isclose(float(start_a.sum()), 1.0, rel_tol=0, abs_tol=1e-9)
     ):
         raise ValueError(f"startprob: expected 2 probabilities summing to 1, got {start_a.tolist()}")
-    return means_a, vars_a, trans_a, start_a
+    return trans_a, start_a
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,14 +158,6 @@ def stationary_distribution(transmat: Any) -> np.ndarray:
     pi = np.linalg.solve(system, rhs)
     pi = np.clip(pi, 0.0, None)  # round-off may leave -1e-17 where the exact value is 0
     return pi / pi.sum()
-
-
-def emission_log_likelihood_ratio(signal: np.ndarray, means: np.ndarray, vars: np.ndarray) -> np.ndarray:
-    """log N(x; m1, v1) - log N(x; m0, v0) per frame, shape (T,), float64; NaN where x is NaN."""
-    x = np.asarray(signal, dtype=np.float64)
-    m0, m1 = float(means[0]), float(means[1])
-    v0, v1 = float(vars[0]), float(vars[1])
-    return -0.5 * math.log(v1 / v0) - (x - m1) ** 2 / (2.0 * v1) + (x - m0) ** 2 / (2.0 * v0)
 
 
 def _log_or_minus_inf(value: float) -> float:
@@ -190,8 +198,54 @@ def sigmoid(z: np.ndarray) -> np.ndarray:
     return np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
 
 
+def check_persistent(transmat: Any, kind: str) -> None:
+    """ValueError unless P(contact | contact) >= P(contact | no contact): the condition under which a larger
+    posterior at frame t-1 predicts a larger one at frame t, so that a monotone emission gives a monotone
+    filter (the model kinds other than the paper's require it)."""
+    a = np.asarray(transmat, dtype=np.float64)
+    if a[1, 1] < a[0, 1]:
+        raise ValueError(
+            f"model kind {kind!r}: P(contact | contact) = {a[1, 1]:.4g} is below P(contact | no contact) = "
+            f"{a[0, 1]:.4g} (the labels leave contact more often than they stay in it); the posterior would "
+            "then fall after frames that read nearer")
+
+
+def forward_filter_llr(signal: Any, llr: Any, transmat: Any, startprob: Any) -> np.ndarray:
+    """The forward filter with any emission: P(contact | x_1..x_t) for every frame t.
+
+    Args:
+        signal: (T,) float, the per-frame signal (dec); NaN = no observation at that frame.
+        llr: the emission log-likelihood ratio, a function (T,) signal -> (T,) log p(x | contact) -
+            log p(x | no contact) (NaN where the signal is NaN), e.g. an emission's
+            ``log_likelihood_ratio`` (:mod:`contact_viz.model.emission`).
+        transmat: (2, 2) row-stochastic, transmat[i, j] = P(s_t = j | s_{t-1} = i).
+        startprob: (2,) distribution of s_0.
+
+    Returns:
+        (T,) float64 in [0, 1]: z_0 = log pi_1 - log pi_0 + llr(x_0), then
+        z_t = log (A^T p_{t-1})_1 - log (A^T p_{t-1})_0 + llr(x_t) (a NaN frame adds 0: the one-step
+        prediction), and sigmoid(z_t). See :func:`forward_filter` for the paper's Gaussian emission.
+    """
+    x = _check_signal(signal, "signal")
+    trans_a, start_a = _check_chain(transmat, startprob)
+    n_frames = x.shape[0]
+    if n_frames == 0:
+        return np.zeros(0, dtype=np.float64)
+    evidence = np.asarray(llr(x), dtype=np.float64)
+    if evidence.shape != x.shape:
+        raise ValueError(f"llr: expected {x.shape[0]} values (one per frame), got shape {evidence.shape}")
+    evidence = np.where(np.isnan(evidence), 0.0, evidence).tolist()  # a missing observation adds no evidence
+
+    transitions = _transitions(trans_a)
+    log_odds = [0.0] * n_frames
+    z = log_odds[0] = _prior_log_odds(start_a) + evidence[0]
+    for t in range(1, n_frames):
+        z = log_odds[t] = _filter_step(z, transitions, evidence[t])
+    return sigmoid(np.asarray(log_odds, dtype=np.float64))
+
+
 def forward_filter(signal: Any, means: Any, vars: Any, transmat: Any, startprob: Any) -> np.ndarray:
-    """Causal forward filtering: P(contact | x_1..x_t) for every frame t.
+    """Causal forward filtering with the paper's Gaussian emissions: P(contact | x_1..x_t) for every frame t.
 
     Args:
         signal: (T,) float, the per-frame signal (dec); NaN = no observation at that frame.
@@ -206,22 +260,12 @@ def forward_filter(signal: Any, means: Any, vars: Any, transmat: Any, startprob:
         so its value is the one-step prediction. The recursion runs on the log-odds
         z_t = log alpha_t[1] - log alpha_t[0], carrying both p and 1 - p, so extreme
         observations saturate at exactly 0 or 1 instead of underflowing to NaN. The output at
-        frame t depends on frames 0..t only.
+        frame t depends on frames 0..t only. It is :func:`forward_filter_llr` with
+        ``emission_log_likelihood_ratio``.
     """
-    x = _check_signal(signal, "signal")
-    means_a, vars_a, trans_a, start_a = _check_model(means, vars, transmat, startprob)
-    n_frames = x.shape[0]
-    if n_frames == 0:
-        return np.zeros(0, dtype=np.float64)
-    llr = emission_log_likelihood_ratio(x, means_a, vars_a)
-    llr = np.where(np.isnan(llr), 0.0, llr).tolist()  # a missing observation adds no evidence
-
-    transitions = _transitions(trans_a)
-    log_odds = [0.0] * n_frames
-    z = log_odds[0] = _prior_log_odds(start_a) + llr[0]
-    for t in range(1, n_frames):
-        z = log_odds[t] = _filter_step(z, transitions, llr[t])
-    return sigmoid(np.asarray(log_odds, dtype=np.float64))
+    means_a, vars_a, _, _ = _check_model(means, vars, transmat, startprob)
+    return forward_filter_llr(signal, lambda x: emission_log_likelihood_ratio(x, means_a, vars_a),
+                              transmat, startprob)
 
 
 def select_f1_threshold(scores: Any, labels: Any) -> float:
@@ -335,7 +379,8 @@ def _check_scene_sessions(
 
 
 class SupervisedGaussianHMM:
-    """Two-state Gaussian HMM fitted by maximum likelihood on fully labelled sessions.
+    """Two-state HMM fitted by maximum likelihood on fully labelled sessions, with the emission of
+    ``params.model_kind`` (the paper's Gaussians by default).
 
     Fitted attributes (after ``fit`` or ``from_dict``):
         means_: (2,) float64, emission mean per state (0 = no contact, 1 = contact), dec.
@@ -344,6 +389,8 @@ class SupervisedGaussianHMM:
         startprob_: (2,) float64, the stationary distribution of transmat_ (not learned).
         n_frames_: (2,) int, frames with a finite signal per state used for means_/vars_.
         transition_counts_: (2, 2) int, n_ij: consecutive labelled pairs (i -> j) within sessions.
+        emission_: the fitted emission of the model kind (contact_viz.model.emission), whose
+            ``log_likelihood_ratio`` is the per-frame evidence the filter adds.
     """
 
     def __init__(self, params: HMMParams | None = None) -> None:
@@ -390,26 +437,42 @@ class SupervisedGaussianHMM:
                 )
         transmat = counts / counts.sum(axis=1, keepdims=True)
 
+        kind = self.params.model_kind
+        if kind != PAPER_KIND:
+            check_persistent(transmat, kind)
+        labelled = finite & (y_all != UNKNOWN_LABEL)
+        emission = EMISSIONS[kind]().fit(x_all[labelled], y_all[labelled], means, vars_,
+                                         min_prob=self.params.calibration_min_prob)
+
         self.means_ = means
         self.vars_ = vars_
         self.transmat_ = transmat
         self.startprob_ = stationary_distribution(transmat)
         self.n_frames_ = n_frames
         self.transition_counts_ = counts
+        self.emission_ = emission
         return self
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "transmat_"):
             raise NotFittedError("SupervisedGaussianHMM is not fitted: call fit() or from_dict() first")
 
-    def predict_proba(self, signal: Any) -> np.ndarray:
-        """Filtered P(contact | x_1..x_t), shape (T,), float64; see ``forward_filter``."""
+    def log_likelihood_ratio(self, signal: Any) -> np.ndarray:
+        """The per-frame evidence log p(x | contact) - log p(x | no contact), shape (T,), NaN where x is NaN."""
         self._check_fitted()
-        return forward_filter(signal, self.means_, self.vars_, self.transmat_, self.startprob_)
+        return self.emission_.log_likelihood_ratio(signal)
+
+    def predict_proba(self, signal: Any) -> np.ndarray:
+        """Filtered P(contact | x_1..x_t), shape (T,), float64; see ``forward_filter_llr`` (the paper's
+        kind: exactly ``forward_filter``)."""
+        self._check_fitted()
+        return forward_filter_llr(signal, self.emission_.log_likelihood_ratio, self.transmat_, self.startprob_)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (plain floats, ints and lists) of params and fitted attributes."""
+        """JSON-ready dict (plain floats, ints and lists) of params and fitted attributes (a kind other than
+        the paper's adds its emission's under "emission")."""
         self._check_fitted()
+        extra = {} if self.params.model_kind == PAPER_KIND else {"emission": self.emission_.to_dict()}
         return {
             "params": _params_to_dict(self.params),
             "means": [float(v) for v in self.means_],
@@ -418,18 +481,24 @@ class SupervisedGaussianHMM:
             "startprob": [float(v) for v in self.startprob_],
             "n_frames": [int(v) for v in self.n_frames_],
             "transition_counts": [[int(v) for v in row] for row in self.transition_counts_],
+            **extra,
         }
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SupervisedGaussianHMM:
         """Rebuild a fitted model from ``to_dict`` output; missing or unknown keys are an error."""
-        _check_keys(data, {"params", "means", "vars", "transmat", "startprob", "n_frames", "transition_counts"},
-                    "SupervisedGaussianHMM.from_dict")
         model = cls(_params_from_dict(HMMParams, data["params"]))
+        kind = model.params.model_kind
+        keys = {"params", "means", "vars", "transmat", "startprob", "n_frames", "transition_counts"}
+        _check_keys(data, keys if kind == PAPER_KIND else keys | {"emission"}, "SupervisedGaussianHMM.from_dict")
         means, vars_, transmat, startprob = _check_model(
             data["means"], data["vars"], data["transmat"], data["startprob"]
         )
+        if kind != PAPER_KIND:
+            check_persistent(transmat, kind)
+        emission = EMISSIONS[kind].from_dict(data.get("emission", {}), means, vars_)
         model.means_, model.vars_, model.transmat_, model.startprob_ = means, vars_, transmat, startprob
+        model.emission_ = emission
         model.n_frames_ = np.asarray(data["n_frames"], dtype=np.int64)
         model.transition_counts_ = np.asarray(data["transition_counts"], dtype=np.int64)
         return model
@@ -520,6 +589,11 @@ class LosoEnsemble:
         self._check_fitted()
         return np.mean(np.stack([m.predict_proba(signal) for m in self.models_]), axis=0)
 
+    def log_likelihood_ratio(self, signal: Any) -> np.ndarray:
+        """Mean over the K models of the per-frame evidence (emission log-likelihood ratio), (T,), NaN where x is NaN."""
+        self._check_fitted()
+        return np.mean(np.stack([m.log_likelihood_ratio(signal) for m in self.models_]), axis=0)
+
     def predict(self, signal: Any) -> np.ndarray:
         """Contact decision per frame, (T,) bool: ``predict_proba(signal) >= threshold_``."""
         return self.predict_proba(signal) >= self.threshold_
@@ -548,6 +622,10 @@ class LosoEnsemble:
             )
         ens = cls(_params_from_dict(HMMParams, data["params"]))
         ens.models_ = [SupervisedGaussianHMM.from_dict(m) for m in data["models"]]
+        kinds = sorted({m.params.model_kind for m in ens.models_})
+        if kinds != [ens.params.model_kind]:
+            raise ValueError(f"LosoEnsemble.from_dict: the ensemble's model kind is {ens.params.model_kind!r}, "
+                             f"its models' {kinds}")
         ens.session_names_ = [str(s) for s in data["session_names"]]
         ens.oof_posteriors_ = [np.asarray(p, dtype=np.float64) for p in data["oof_posteriors"]]
         ens.threshold_ = float(data["threshold"])
@@ -563,10 +641,12 @@ class StreamingFilter:
     """``forward_filter`` fed one observation at a time, for one model or the mean of an ensemble.
 
     ``update(x)`` returns P(contact | x_1..x_t) for the frame just given (NaN x = no observation:
-    the one-step prediction), equal to ``forward_filter`` on the whole sequence so far, bit for bit:
-    the recursion performs the same floating-point operations in the same order. With an ensemble
-    the value is the mean over its K models, as ``LosoEnsemble.predict_proba`` computes it.
-    Memory is O(K), whatever the sequence length.
+    the one-step prediction), equal to ``predict_proba`` on the whole sequence so far, bit for bit:
+    the recursion performs the same floating-point operations in the same order, with each model's
+    emission. With an ensemble the value is the mean over its K models, as
+    ``LosoEnsemble.predict_proba`` computes it. After an update, ``evidence`` is that frame's emission
+    log-likelihood ratio (the mean over the K models, as ``LosoEnsemble.log_likelihood_ratio``; NaN
+    for no observation). Memory is O(K), whatever the sequence length.
     """
 
     def __init__(self, model: SupervisedGaussianHMM | LosoEnsemble) -> None:
@@ -580,23 +660,26 @@ class StreamingFilter:
             raise TypeError(
                 f"model: expected a fitted SupervisedGaussianHMM or LosoEnsemble, got {type(model).__name__}"
             )
-        self._params = [_check_model(m.means_, m.vars_, m.transmat_, m.startprob_) for m in models]
+        self._params = [(m.emission_.log_likelihood_ratio, *_check_chain(m.transmat_, m.startprob_)) for m in models]
         self._log_odds: list[float] | None = None  # per model, after the last update; None before the first
         self.frames = 0
+        self.evidence = math.nan  # the last frame's emission log-likelihood ratio (NaN: none yet, or no observation)
 
     def reset(self) -> None:
         """Forget every observation (the next update is frame 0 again)."""
         self._log_odds = None
         self.frames = 0
+        self.evidence = math.nan
 
     def update(self, x: float) -> float:
         """Add the next frame's signal ``x`` (dec; NaN = missing) and return the filtered P(contact)."""
         x = float(x)
         if math.isinf(x):
             raise ValueError(f"x: expected a finite signal value or NaN, got {x!r}")
-        new = []
-        for k, (means, vars_, trans, start) in enumerate(self._params):
-            llr = float(emission_log_likelihood_ratio(np.array([x]), means, vars_)[0])
+        new, evidence = [], []
+        for k, (log_likelihood_ratio, trans, start) in enumerate(self._params):
+            llr = float(log_likelihood_ratio(np.array([x]))[0])
+            evidence.append(llr)
             if math.isnan(llr):
                 llr = 0.0
             if self._log_odds is None:
@@ -605,6 +688,7 @@ class StreamingFilter:
                 z = _filter_step(self._log_odds[k], _transitions(trans), llr)
             new.append(z)
         self._log_odds = new
+        self.evidence = float(np.mean(evidence))
         self.frames += 1
         posteriors = sigmoid(np.asarray(new, dtype=np.float64))
         total = posteriors[0]

@@ -1,7 +1,9 @@
 """model.json: a fitted contact model as hand-readable JSON (never pickle).
 
-It holds the K leave-one-session-out HMMs, the decision threshold, the training sessions, the
-patch and label parameters the features were computed with, and the package version.
+It holds the model kind (``model_kind``, :mod:`contact_viz.model.emission`), the K
+leave-one-session-out HMMs, the decision threshold, the training sessions, the patch and label
+parameters the features were computed with, and the package version. A file without
+``model_kind`` (written before the kinds existed) holds the paper's model and loads as it.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 
 from contact_viz import __version__
 from contact_viz.io.jsonfile import read_json, write_json
+from contact_viz.model.emission import PAPER_KIND
 from contact_viz.model.hmm import LosoEnsemble
 from contact_viz.params import LabelParams, PatchParams, from_dict, to_dict
 
@@ -29,6 +32,11 @@ class ContactModel:
     label_params: LabelParams
     training_sessions: tuple[dict[str, Any], ...]  # {"name", "path", "frames"} per training session
     version: str = __version__
+
+    @property
+    def model_kind(self) -> str:
+        """The emission of the ensemble's HMMs (contact_viz.model.emission.MODEL_KINDS)."""
+        return self.ensemble.params.model_kind
 
     @property
     def threshold(self) -> float:
@@ -57,6 +65,7 @@ def model_to_dict(model: ContactModel) -> dict[str, Any]:
     return {
         "format": MODEL_FORMAT,
         "contact_viz_version": model.version,
+        "model_kind": model.model_kind,
         "threshold": model.threshold,
         "training_sessions": list(model.training_sessions),
         "patch_params": to_dict(model.patch_params),
@@ -80,7 +89,10 @@ def load_model(path: str | Path) -> ContactModel:
     if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: expected a contact-viz model.json with \"format\": \"{MODEL_FORMAT}\"")
     try:
+        kind = data.get("model_kind", PAPER_KIND)  # an older file: the paper's (so are its HMMParams' defaults)
         ensemble = LosoEnsemble.from_dict(data["ensemble"])
+        if ensemble.params.model_kind != kind:
+            raise ValueError(f"model_kind is {kind!r} but the ensemble holds {ensemble.params.model_kind!r}")
         model = ContactModel(
             ensemble=ensemble,
             patch_params=from_dict(PatchParams, data["patch_params"]),

@@ -21,7 +21,8 @@ import numpy as np
 from contact_viz.baseline import BaselineEnsemble, BaselineParams, BaselineWarning, FoldEvent, SessionCrops
 from contact_viz.io.cache import cache_key, default_cache_dir
 from contact_viz.io.session import Session, open_session
-from contact_viz.model.hmm import LosoEnsemble
+from contact_viz.model.hmm import HMMParams, LosoEnsemble
+from contact_viz.model.kinds import PAPER_KIND
 from contact_viz.model.model_file import ContactModel, save_model
 from contact_viz.paper.profiles import StudyProfile
 from contact_viz.paper.study import Split, read_split
@@ -131,7 +132,8 @@ def fit_hmm(study: Study, params: PatchParams, label_params: LabelParams, cache_
     train = [_features(s, params, label_params, cache_dir) for s in study.train]
     test = [_features(s, params, label_params, cache_dir) for s in study.test]
     log.info("== LOSO HMM ensemble")
-    ensemble = fit_loso(train)  # several instruments: one sequence each (pipeline.features.fit_loso)
+    # the paper's six-parameter HMM, whatever `contact-viz fit` defaults to; several instruments: one sequence each
+    ensemble = fit_loso(train, HMMParams(model_kind=PAPER_KIND))
     model = ContactModel(ensemble=ensemble, patch_params=params, label_params=label_params,
                          training_sessions=tuple({"name": s.name, "path": str(s.root), "frames": len(s)}
                                                  for s in study.train))

@@ -30,6 +30,8 @@ def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: C
     """Run ``fit`` and/or ``evaluate`` (as in ``options.steps``) on the features under ``out``;
     ``sessions`` (name -> the opened Session) give labels.csv's per-instrument labels."""
     from contact_viz.model.model_file import ContactModel, check_params, load_model, save_model
+    from contact_viz.model.hmm import HMMParams
+    from contact_viz.model.kinds import FIT_DEFAULT_KIND
     from contact_viz.pipeline.features import csv_features, fit_loso, score_features, with_tool_labels
 
     features = {}
@@ -57,7 +59,8 @@ def run_dataset_steps(summary, out: Path, names: Sequence[str], options, tick: C
             if len(labelled) < 2:
                 raise ValueError(f"fit: expected at least 2 sessions with labels and features, found {len(labelled)}"
                                  " (run the extract step too)")
-            ensemble = fit_loso([features[n] for n in labelled])
+            # the model kind `contact-viz fit` fits by default
+            ensemble = fit_loso([features[n] for n in labelled], HMMParams(model_kind=FIT_DEFAULT_KIND))
             model = ContactModel(ensemble=ensemble, patch_params=options.params, label_params=options.label_params,
                                  training_sessions=tuple(features[n].training_entry(s.path) | {"frames": s.frames}
                                                          for n in labelled for s in summary.sessions if s.name == n))

@@ -19,6 +19,7 @@ from contact_viz.viz.entities import (
     ENTITY_SERIES_CONTACT,
     ENTITY_SERIES_DIAGNOSTICS,
     ENTITY_SERIES_DISTANCE,
+    ENTITY_SERIES_EVIDENCE,
     ENTITY_SERIES_FORCE,
     ENTITY_SERIES_LAG,
     ENTITY_SERIES_SIGNAL,
@@ -28,7 +29,7 @@ from contact_viz.viz.entities import (
 )
 from contact_viz.viz.style import LAYER_STYLES
 
-__all__ = ["DEPTH_LEGEND", "DIAGNOSTICS_RANGE", "DISTANCE_RANGE", "MARKER_LANE", "SCORE_CLIP", "SIGNAL_RANGE", "default_blueprint",
+__all__ = ["DEPTH_LEGEND", "DIAGNOSTICS_RANGE", "DISTANCE_RANGE", "EVIDENCE_RANGE", "MARKER_LANE", "SCORE_CLIP", "SIGNAL_RANGE", "default_blueprint",
            "layer_legend"]
 
 SCORE_CLIP = 3.0  # diagnostic scores (value / threshold) are drawn clipped at this, ratio
@@ -38,6 +39,9 @@ SIGNAL_RANGE = (0.8, 4.2)  # the signal plot's y range: 160 mm to the cap at 0.1
 # the distance plot's y range: contact to a 40 mm hover. The viewer labels its y axis only where 10 mm steps are
 # 20 px apart or more (at 1280x720 a range of 60 mm left only "0"); farther distances leave the top, mm
 DISTANCE_RANGE = (-3.0, 40.0)
+# the evidence plot's y range: the log-likelihood ratio, 0 (no evidence either way) in the middle; a hovering tool
+# reads -5 to -20 with the paper's model, nats
+EVIDENCE_RANGE = (-12.0, 12.0)
 
 # Default 3D camera of the blueprint, in the world (= left camera) frame, RDF, m: above, to the left of and
 # slightly behind the stereo camera, looking at a point on the optical axis at a typical endoscopic working
@@ -74,7 +78,8 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     side (EYE_*), and beside it the contact pane (ENTITY_CONTACT: which instrument is in contact, each one's
     distance and posterior, and the legend of the colours). Right column, on the global ``frame`` axis:
     distance, signal (its whole range, the cap at 4 included), force, contact (truth, posterior, threshold,
-    prediction; each instrument's posterior in its colour) and, in tabs, the diagnostics (each check's score and
+    prediction; each instrument's posterior in its colour), with a model the evidence for contact beneath it
+    (each instrument's log-likelihood ratio: why the posterior moves) and, in tabs, the diagnostics (each check's score and
     markers, with a legend), the text log, and with ``with_kinematics`` the tool-tip error, with ``with_lag``
     (--follow) the lag of each frame (files complete -> logged, ms).
     """
@@ -116,6 +121,9 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
                            contents=[f"+ {ENTITY_SERIES_FORCE}/magnitude"], plot_legend=rrb.PlotLegend(visible=False)),
         rrb.TimeSeriesView(name=contact_name, origin=ENTITY_SERIES_CONTACT, axis_x=linked,
                            axis_y=rrb.ScalarAxis(range=(-0.05, 1.05)), plot_legend=rrb.PlotLegend(visible=False)),
+        *([rrb.TimeSeriesView(name="evidence for contact: log LR (> 0: contact)", origin=ENTITY_SERIES_EVIDENCE,
+                              axis_x=linked, axis_y=rrb.ScalarAxis(range=EVIDENCE_RANGE),
+                              plot_legend=rrb.PlotLegend(visible=False))] if with_model else []),
         rrb.Tabs(
             rrb.TimeSeriesView(name="checks: score (> 1 fires), markers where fired", origin=ENTITY_SERIES_DIAGNOSTICS,
                                axis_x=linked, axis_y=rrb.ScalarAxis(range=DIAGNOSTICS_RANGE),
@@ -131,7 +139,7 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(images, rrb.Horizontal(scene, contact, column_shares=[3, 1]), row_shares=[0.5, 0.5]),
-            rrb.Vertical(*series, row_shares=[1.2, 0.9, 0.8, 1.1, 1.2]),
+            rrb.Vertical(*series, row_shares=[1.2, 0.9, 0.8, 1.1, *([0.8] if with_model else []), 1.2]),
             column_shares=[3, 2],
         ),
         rrb.BlueprintPanel(state="collapsed"),

@@ -31,6 +31,10 @@ Entity tree (the README lists it too)::
     series/contact/posterior       Scalars: causal HMM posterior (only with a model)
     series/contact/threshold       Scalars: decision threshold (send_columns, only with a model)
     series/contact/predicted       Scalars: posterior >= threshold, 0/1 (only with a model)
+    series/contact_evidence        Scalars: the frame's evidence for contact, the emission log-likelihood ratio
+                                   log p(signal | contact) - log p(signal | no contact) that the filter adds (mean
+                                   over the model's K HMMs; > 0 favours contact; NaN without a patch; only with a
+                                   model)
     series/diagnostics/invalid_depth_fraction   Scalars: share of band pixels with invalid depth
     series/diagnostics/<code>      Scalars (points): a marker at each frame where that check fired (at its score)
     series/diagnostics/score/<code>  Scalars: the check's measured value / its threshold (> 1 fires), clipped at 3
@@ -57,6 +61,7 @@ always did; every other instrument ``k`` logs the same things one level down, at
     world/patch/{tissue,tool,gap,gap_length}/tools/<k>  its patch points and gap
     series/distance/tools/<k>             Scalars: its patch distance, mm
     series/signal/tools/<k>               Scalars: its signal
+    series/contact_evidence/tools/<k>     Scalars: its evidence for contact (with a model)
     series/contact/posterior/tools/<k>    Scalars: instrument k's own causal posterior, for every instrument
                                           (the primary's too: series/contact/posterior is the scene's, the max
                                           over the instruments in the frame); once the session has shown a
@@ -102,6 +107,7 @@ __all__ = [
     "ENTITY_SERIES_POSTERIOR",
     "ENTITY_SERIES_THRESHOLD",
     "ENTITY_SERIES_PREDICTED",
+    "ENTITY_SERIES_EVIDENCE",
     "ENTITY_SERIES_DIAGNOSTICS",
     "ENTITY_SERIES_INVALID_DEPTH",
     "ENTITY_SERIES_SCORES",
@@ -163,6 +169,7 @@ ENTITY_SERIES_TRUTH = "series/contact/truth"
 ENTITY_SERIES_POSTERIOR = "series/contact/posterior"
 ENTITY_SERIES_THRESHOLD = "series/contact/threshold"
 ENTITY_SERIES_PREDICTED = "series/contact/predicted"
+ENTITY_SERIES_EVIDENCE = "series/contact_evidence"  # Scalars: the emission log-likelihood ratio of the signal
 ENTITY_SERIES_DIAGNOSTICS = "series/diagnostics"
 ENTITY_SERIES_LAG = "series/lag_ms"  # --follow: a frame's files complete -> its data logged, ms
 ENTITY_SERIES_INVALID_DEPTH = "series/diagnostics/invalid_depth_fraction"

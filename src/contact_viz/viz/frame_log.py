@@ -51,6 +51,7 @@ class InstrumentPosteriors:
     def __init__(self, ensemble) -> None:
         self._unseen = StreamingFilter(ensemble)  # fed NaN on every frame: an instrument not seen yet
         self.filters: dict[int, StreamingFilter] = {}
+        self.evidence: dict[int, float] = {}
 
     def update(self, signals: dict[int, float]) -> tuple[float, dict[int, float]]:
         """Add one frame: ``signals`` {object id: signal} of the instruments in it ({} for none, or a bad
@@ -58,6 +59,7 @@ class InstrumentPosteriors:
         for tool in sorted(signals.keys() - self.filters.keys()):
             self.filters[tool] = copy.deepcopy(self._unseen)
         each = {tool: f.update(signals.get(tool, math.nan)) for tool, f in self.filters.items()}
+        self.evidence = {tool: self.filters[tool].evidence for tool in signals}
         unseen = self._unseen.update(math.nan)
         present = [each[tool] for tool in signals]
         scene = max(present) if present else max(each.values()) if each else unseen
@@ -82,10 +84,11 @@ def contact_instrument(posteriors: dict[int, float], threshold: float) -> tuple[
 
 
 def contact_text(tool_patches: dict, posteriors: dict[int, float] | None, threshold: float | None,
-                 contact: int | None, top: int | None) -> str:
+                 contact: int | None, top: int | None, evidence: dict[int, float] | None = None) -> str:
     """The frame's ENTITY_CONTACT document (markdown): the contact state as a heading (the instrument in contact
-    with a model, or the nearest without), then each instrument's distance (and posterior) under its colour's name,
-    then the legend of the colours (blueprint.layer_legend)."""
+    with a model, or the nearest without), then each instrument's distance (and posterior, and the evidence for
+    contact its signal gave: the log-likelihood ratio, ``evidence``) under its colour's name, then the legend of
+    the colours (blueprint.layer_legend)."""
     def name(tool: int) -> str:
         return f"instrument {tool} ({instrument_style(tool).colour_name})"
 
@@ -106,6 +109,8 @@ def contact_text(tool_patches: dict, posteriors: dict[int, float] | None, thresh
         text = f"- {name(tool)}: " + (f"{d * 1000:.1f} mm" if math.isfinite(d) else "no distance")
         if posteriors is not None:
             text += f", P {posteriors[tool]:.2f}"
+        if evidence is not None and math.isfinite(evidence.get(tool, math.nan)):
+            text += f", evidence {evidence[tool]:+.1f}"
         lines.append(text)
     return "\n".join([*lines, "", f"*{layer_legend()}*", "", f"*{DEPTH_LEGEND}*"])
 
@@ -181,7 +186,8 @@ class FrameLogger:
                              with_right=with_right, with_model=model is not None,
                              right_step=right_step_of(session, options))
         config = run_config(session, options=options, model=None if model is None else {
-            "threshold": model.threshold, "training_sessions": list(model.training_sessions),
+            "model_kind": model.model_kind, "threshold": model.threshold,
+            "training_sessions": list(model.training_sessions),
             "label_params": to_dict(model.label_params), "version": model.version})
         config["session"]["depth"] = getattr(session, "depth_note", None)
         rerun_log.log_config(rec, config)
@@ -200,6 +206,8 @@ class FrameLogger:
         self.instruments = rerun_log.InstrumentLayers(min(selected) if selected else 1, with_model=model is not None,
                                                       several=bool(selected) and len(selected) > 1,
                                                       image_size=session.image_size)
+        # each instrument's evidence for contact beside the posterior (with a model)
+        self.evidence_lines = None if model is None else rerun_log.ContactEvidenceLines(self.instruments)
         self.check_lines = rerun_log.CheckLines()  # the checks' score lines, drawn where near firing
         self.instrument_frames: dict[int, int] = {}
         self.nearest_frames: dict[int, int] = {}
@@ -256,6 +264,7 @@ class FrameLogger:
                                     instruments=self.instruments, contact_text="this frame could not be read",
                                     lines=self.check_lines)
             rerun_log.log_images(rec, _ImagesOf(shown, self.video_entities, self.with_right))  # its own, or none
+            self._log_contact_evidence()
             self.depth_kind.log(rec, None)
             if self.videos is not None:
                 self.videos.feed(frame.index, shown)
@@ -294,10 +303,12 @@ class FrameLogger:
                 notes=shown.notes,
                 contact_tool=contact,
                 contact_text=contact_text(tools, None if each is None else {k: each[k] for k in tools},
-                                          None if self.model is None else self.model.threshold, contact, top),
+                                          None if self.model is None else self.model.threshold, contact, top,
+                                          None if self.stream is None else self.stream.evidence),
             )
             t3 = time.perf_counter()
             rerun_log.log_frame(rec, result, view, self.instruments, self.check_lines)
+            self._log_contact_evidence()
             self.depth_kind.log(rec, kind_ids)
             if self.videos is not None:
                 self.videos.feed(frame.index, shown)
@@ -308,6 +319,12 @@ class FrameLogger:
         self.prepare_s += t3 - t2
         self.log_s += time.perf_counter() - t3
 
+    def _log_contact_evidence(self) -> None:
+        """The frame's evidence for contact per instrument (after its posterior was computed by ``_contact``; a bad
+        frame: none, each line breaks)."""
+        if self.evidence_lines is not None:
+            self.evidence_lines.log(self.rec, self.stream.evidence)
+
     def log_series_only(self, result) -> None:
         """A frame shown only in the series (a follower catching up): its distances and posterior (the
         causal filter sees every frame), no images, layers or checks."""
@@ -315,6 +332,7 @@ class FrameLogger:
         rerun_log.set_frame_time(self.rec, frame.index, frame.timestamp_s)
         tools, posterior, predicted, each, _, _ = self._contact(result)
         rerun_log.log_series_only(self.rec, tools, posterior, predicted, each, self.instruments, self.video_entities)
+        self._log_contact_evidence()
         self.depth_kind.log(self.rec, None)
         if self.videos is not None:  # a grey frame: the video must not show the frame before as this one
             self.videos.feed(frame.index, ShownImages(None, None, None, None, None, None, None, self.with_right, ()))

@@ -50,6 +50,7 @@ from contact_viz.viz.style import (
 __all__ = [
     "APPLICATION_ID",
     "CheckLines",
+    "ContactEvidenceLines",
     "DepthKindLayer",
     "OpenedRecording",
     "RecordingStream",
@@ -372,6 +373,38 @@ def _log_contact(rec: rr.RecordingStream, posterior: float | None, predicted: bo
         _log_series(rec, ENTITY_SERIES_POSTERIOR, posterior)
     if predicted is not None:
         _log_series(rec, ENTITY_SERIES_PREDICTED, 1.0 if predicted else 0.0)
+
+
+class ContactEvidenceLines:
+    """Each instrument's evidence for contact, frame by frame (with a model): the emission log-likelihood ratio of
+    its signal that the causal filter adds (ENTITY_SERIES_EVIDENCE; the primary instrument's at that path, every
+    other one's under it, at ``tools/<k>``), a line in the instrument's colour. An instrument without evidence at a
+    frame (absent, no patch, a bad frame) gets a NaN, once: its line breaks there. The lines are named after
+    their instruments once the session has several (``instruments.several``)."""
+
+    def __init__(self, instruments: InstrumentLayers) -> None:
+        self.instruments = instruments
+        self.styled: dict[int, bool] = {}  # instrument -> whether its line's style names it
+        self.shown: set[int] = set()  # instruments whose line holds a value at the current time
+
+    def _style(self, rec: rr.RecordingStream, tool: int) -> None:
+        named = self.instruments.several
+        if self.styled.get(tool) == named:
+            return
+        self.styled[tool] = named
+        base, style = SERIES_STYLES["contact_evidence"], instrument_style(tool)
+        rec.log(self.instruments.entity(ENTITY_SERIES_EVIDENCE, tool),
+                rr.SeriesLines(colors=[style.line], widths=[base.width_px],
+                               names=[f"{base.name}, {style.name}" if named else base.name]), static=True)
+
+    def log(self, rec: rr.RecordingStream, evidence: dict[int, float]) -> None:
+        """Log ``evidence`` {object id: log-likelihood ratio, nats (NaN: no observation)} at the current time."""
+        for tool in sorted(evidence):
+            self._style(rec, tool)
+            _log_series(rec, self.instruments.entity(ENTITY_SERIES_EVIDENCE, tool), evidence[tool])
+        for tool in sorted(self.shown - evidence.keys()):
+            _log_series(rec, self.instruments.entity(ENTITY_SERIES_EVIDENCE, tool), math.nan)
+        self.shown = {tool for tool, value in evidence.items() if math.isfinite(value)}
 
 
 class CheckLines:

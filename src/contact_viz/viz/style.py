@@ -192,6 +192,8 @@ SERIES_STYLES: dict[str, SeriesStyle] = {
     "scene_posterior": SeriesStyle("P(contact), max", (110, 110, 110, 255), 2.5),
     "threshold": SeriesStyle("threshold", GREY, 1.0),
     "predicted": SeriesStyle("predicted", with_alpha(VERMILLION, 150), 7.0, step=True),
+    # the emission log-likelihood ratio the filter adds per frame (each instrument's in its own colour)
+    "contact_evidence": SeriesStyle("evidence (log LR)", SKY_BLUE, 2.0),
     "invalid_depth_fraction": SeriesStyle("invalid depth in the band", LIGHT_GREY, 1.5),
 }
 
