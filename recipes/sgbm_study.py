@@ -47,8 +47,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -68,6 +66,7 @@ from contact_viz.model.hmm import LosoEnsemble
 from contact_viz.model.metrics import format_table, macro_mean, session_metrics, MACRO_ROW
 from contact_viz.params import LabelParams, PatchParams
 from contact_viz.pipeline.extract import cached_features, extract_features, feature_arrays
+from contact_viz.synth.faults import without_depth
 
 TRAIN = [(f"cup_train_{k}", "cup", 1300 + k) for k in range(6)]
 TEST = [("cup_test", "cup", 1310), ("kidney_test", "kidney", 1311), ("liver_test", "liver", 1312),
@@ -121,23 +120,8 @@ def make_sessions(directory: Path, frames: int, size: tuple[int, int], camera: s
 
 
 def stereo_only(src: Path, dst: Path) -> Path:
-    """A copy of session ``src`` without depth/ (hard links where possible), so that SGBM computes it."""
-    if (dst / "session.json").is_file():
-        return dst
-    tmp = dst.with_name(f".{dst.name}.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    for path in sorted(src.rglob("*")):
-        rel = path.relative_to(src)
-        if rel.parts[0] == "depth" or path.is_dir():
-            continue
-        target = tmp / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(path, target)
-        except OSError:
-            shutil.copy2(path, target)
-    tmp.rename(dst)
-    return dst
+    """A copy of session ``src`` without depth/ (contact_viz.synth.faults.without_depth)."""
+    return without_depth(src, dst)
 
 
 def source_root(directory: Path, source: str, name: str) -> Path:

@@ -18,15 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from transfer_study import stereo_only  # noqa: E402
-
-from contact_viz.io.session import open_session  # noqa: E402
-from contact_viz.model.hmm import HMMParams  # noqa: E402
-from contact_viz.model.kinds import MODEL_KINDS  # noqa: E402
-from contact_viz.params import LabelParams, PatchParams  # noqa: E402
-from contact_viz.pipeline.features import fit_loso, session_features  # noqa: E402
-from contact_viz.synth import SynthParams, generate_session  # noqa: E402
+from contact_viz.io.session import open_session
+from contact_viz.model.hmm import HMMParams
+from contact_viz.model.kinds import MODEL_KINDS
+from contact_viz.params import LabelParams, PatchParams
+from contact_viz.pipeline.features import fit_loso, session_features
+from contact_viz.synth import SynthParams, generate_session
+from contact_viz.synth.faults import without_depth
 
 TRAIN_SEEDS = (1, 2, 3)  # the three 640x360 cup sessions (rendered depth, 90 frames each)
 TEST = dict(phantom="kidney", frames=40, seed=8, width=1920, height=1080)  # the shifted session, as the issue
@@ -53,7 +51,7 @@ def main(argv=None) -> int:
     train = [features(session(args.dir, f"cup640_s{s}", SynthParams(phantom="cup", frames=90, seed=s, width=640,
                                                                      height=360)), cache) for s in TRAIN_SEEDS]
     rendered = session(args.dir, "kidney1080_s8", SynthParams(**TEST))
-    test = features(stereo_only(rendered, args.dir / "stereo" / "kidney1080_s8"), cache)
+    test = features(without_depth(rendered, args.dir / "stereo" / "kidney1080_s8"), cache)
     contact = test.labels == 1
     print(f"kidney 1920x1080 seed 8, SGBM depth: {int(contact.sum())} contact frames of {len(test.labels)}; "
           f"median signal there {np.nanmedian(test.signal[contact]):.2f} (cap 4.0)")

@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -41,10 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from contact_viz.io.session import open_session
+from contact_viz.synth.faults import without_depth
 from contact_viz.model.emission import MODEL_KINDS, MONOTONE_KINDS
 from contact_viz.model.evaluation import metrics_table
 from contact_viz.model.hmm import HMMParams
-from contact_viz.model.metrics import MACRO_ROW
 from contact_viz.params import LabelParams, PatchParams
 from contact_viz.pipeline.features import Features, fit_loso, score_features, session_features
 
@@ -119,23 +117,8 @@ def make_session(directory: Path, group: Group, draw: int, phantom: str, frames:
 
 
 def stereo_only(src: Path, dst: Path) -> Path:
-    """A copy of session ``src`` without depth/ (hard links where possible), so that SGBM computes it."""
-    if (dst / "session.json").is_file():
-        return dst
-    tmp = dst.with_name(f".{dst.name}.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    for path in sorted(src.rglob("*")):
-        rel = path.relative_to(src)
-        if rel.parts[0] == "depth" or path.is_dir():
-            continue
-        target = tmp / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(path, target)
-        except OSError:
-            shutil.copy2(path, target)
-    tmp.rename(dst)
-    return dst
+    """A copy of session ``src`` without depth/ (contact_viz.synth.faults.without_depth)."""
+    return without_depth(src, dst)
 
 
 def domain_sessions(directory: Path, domain: Domain, draw: int, frames: int, hd_frames: int) -> list[Path]:

@@ -193,6 +193,7 @@ class Session:
         sgbm_cache: DisparityCache | None = None,
         kinematics: Kinematics | None = None,
         tool_tips_xy: np.ndarray | None = None,
+        label_params: LabelParams = LabelParams(),
     ) -> None:
         if depth_source not in DEPTH_SOURCES:
             raise ValueError(f"depth_source must be one of {DEPTH_SOURCES}, got {depth_source!r}")
@@ -213,6 +214,7 @@ class Session:
         self.force_n = read_only(force_n)
         self.labels = read_only(labels)
         self.label_source = read_only(label_source)
+        self.label_params = label_params  # what the force labels were made with
         # labels.csv's per-instrument labels (its tool column): object id -> (n,) int8, -1 = no row; None without
         self.tool_labels = None if tool_labels is None else {k: read_only(v) for k, v in tool_labels.items()}
         self.has_right = bool(right_files)
@@ -640,6 +642,7 @@ def open_session(
         force_n=force_n,
         labels=labels,
         label_source=label_source,
+        label_params=label_params,
         tool_labels=tool_labels,
         left_files=left_files,
         right_files=right_files,

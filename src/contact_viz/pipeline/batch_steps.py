@@ -78,7 +78,7 @@ def check_task(job: SessionJob) -> dict:
 
 def view_task(job: SessionJob, model_path: str | None) -> dict:
     """The debugger's recording of the session (the bytes of a .rrd file) and its summary lines."""
-    from contact_viz.viz.debugger import DebuggerOptions, run_debugger
+    from contact_viz.viz.debugger import DebuggerOptions, log_session
     from contact_viz.viz.rerun_log import default_blueprint, open_recording
 
     start = time.perf_counter()
@@ -97,8 +97,8 @@ def view_task(job: SessionJob, model_path: str | None) -> dict:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # bad frames are counted in the summary
                 # a signal stops the whole batch (in this process it is the caller's), not only this recording
-                summary = run_debugger(session, opened.rec, DebuggerOptions(patch_params=job.params), model=model,
-                                       keep_partial=False)
+                summary = log_session(opened.rec, session, options=DebuggerOptions(patch_params=job.params),
+                                      model=model, keep_partial=False)
         except BaseException:
             opened.close(keep=False)
             raise

@@ -99,6 +99,29 @@ def _link_tree(src: Path, dst: Path) -> None:
             shutil.copy2(path, target)
 
 
+def without_depth(src: str | Path, dst: str | Path) -> Path:
+    """A copy of session ``src`` at ``dst`` without depth/ (hard links where possible): a stereo-only session,
+    whose depth contact-viz's SGBM computes. Reused when ``dst`` is a session already; written under a hidden
+    name and renamed into place when complete."""
+    src, dst = Path(src), Path(dst)
+    if (dst / "session.json").is_file():
+        return dst
+    tmp = dst.with_name(f".{dst.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for path in sorted(src.rglob("*")):
+        rel = path.relative_to(src)
+        if rel.parts[0] == "depth" or path.is_dir():
+            continue
+        target = tmp / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(path, target)
+        except OSError:
+            shutil.copy2(path, target)
+    tmp.rename(dst)
+    return dst
+
+
 def _replace(path: Path, write, mode: str = "wb") -> None:
     """Write a new file at ``path`` (breaking a hard link, never writing through it): ``write(handle)``
     into a staging file that is renamed onto ``path`` (contact_viz.io.atomic.atomic_write)."""

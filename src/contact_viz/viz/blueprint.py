@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import rerun.blueprint as rrb
 
 from contact_viz.viz.entities import (
@@ -27,6 +29,7 @@ from contact_viz.viz.entities import (
     ENTITY_WORLD,
     TIMELINE_FRAME,
 )
+from contact_viz.viz.rooted import root_path
 from contact_viz.viz.style import LAYER_STYLES
 
 __all__ = ["DEPTH_LEGEND", "DIAGNOSTICS_RANGE", "DISTANCE_RANGE", "EVIDENCE_RANGE", "MARKER_LANE", "SCORE_CLIP", "SIGNAL_RANGE", "default_blueprint",
@@ -65,7 +68,7 @@ DEPTH_LEGEND = "depth: red = none; SGBM fine inside cyan, coarse dimmed"
 
 
 def default_blueprint(*, with_right: bool = True, with_model: bool = True,
-                      with_kinematics: bool = False, with_lag: bool = False) -> rrb.Blueprint:
+                      with_kinematics: bool = False, with_lag: bool = False, root: str | None = None) -> rrb.Blueprint:
     """The layout sent with every recording: images over the 3D scene and the contact pane on the left, stacked time
     series on the right. Readable in a 1280x720 window: short titles, one colour per instrument everywhere.
 
@@ -81,57 +84,59 @@ def default_blueprint(*, with_right: bool = True, with_model: bool = True,
     prediction; each instrument's posterior in its colour), with a model the evidence for contact beneath it
     (each instrument's log-likelihood ratio: why the posterior moves) and, in tabs, the diagnostics (each check's score and
     markers, with a legend), the text log, and with ``with_kinematics`` the tool-tip error, with ``with_lag``
-    (--follow) the lag of each frame (files complete -> logged, ms).
+    (--follow) the lag of each frame (files complete -> logged, ms). ``root``: the entity root the session was
+    logged under (``contact_viz.log_session(..., root=...)``; None: the debugger's own paths).
     """
+    at = partial(root_path, root)
     linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
-    left = rrb.Spatial2DView(name="left image", origin=ENTITY_LEFT_CAMERA)
+    left = rrb.Spatial2DView(name="left image", origin=at(ENTITY_LEFT_CAMERA))
     # (a quarter of the window wide: its colours are named in the contact pane)
-    depth = rrb.Spatial2DView(name="depth", origin=ENTITY_DEPTH_CAMERA)
+    depth = rrb.Spatial2DView(name="depth", origin=at(ENTITY_DEPTH_CAMERA))
     scene = rrb.Spatial3DView(
         name="3D: cloud, patch, gap",
-        origin=ENTITY_WORLD,
+        origin=at(ENTITY_WORLD),
         # (/**: every instrument's layers and boxes too, under <entity>/tools/<id>)
-        contents=["+ $origin/**", f"- {ENTITY_LEFT_LAYERS}/**", f"- {ENTITY_LEFT_PATCH}/**",
-                  f"- {ENTITY_DEPTH_LAYERS}/**", f"- {ENTITY_DEPTH_PATCH}/**", f"- {ENTITY_DEPTH_KIND}",
-                  f"- {ENTITY_LEFT_CAMERA}/labels/**"],
+        contents=["+ $origin/**", f"- {at(ENTITY_LEFT_LAYERS)}/**", f"- {at(ENTITY_LEFT_PATCH)}/**",
+                  f"- {at(ENTITY_DEPTH_LAYERS)}/**", f"- {at(ENTITY_DEPTH_PATCH)}/**", f"- {at(ENTITY_DEPTH_KIND)}",
+                  f"- {at(ENTITY_LEFT_CAMERA)}/labels/**"],
         # the depth image's own back-projection duplicates the RGB cloud: there, but hidden until toggled on
-        overrides={ENTITY_DEPTH_IMAGE: rrb.EntityBehavior(visible=False)},
+        overrides={at(ENTITY_DEPTH_IMAGE): rrb.EntityBehavior(visible=False)},
         line_grid=rrb.LineGrid3D(visible=False),
         eye_controls=rrb.EyeControls3D(position=EYE_POSITION_M, look_target=EYE_TARGET_M, eye_up=EYE_UP),
     )
     if with_right:
-        right = rrb.Spatial2DView(name="right image", origin=ENTITY_RIGHT_CAMERA)
+        right = rrb.Spatial2DView(name="right image", origin=at(ENTITY_RIGHT_CAMERA))
         images = rrb.Horizontal(left, rrb.Vertical(right, depth), column_shares=[2, 1])
     else:
         images = rrb.Horizontal(left, depth, column_shares=[1, 1])
-    contact = rrb.TextDocumentView(name="contact", origin=ENTITY_CONTACT)
+    contact = rrb.TextDocumentView(name="contact", origin=at(ENTITY_CONTACT))
     # (no legend: a short plot shows the first three entries of its legend only, and the truth came last)
     contact_name = "contact · yellow: truth · band: predicted · P per instrument" if with_model else \
         "contact · yellow: ground truth"
     series = [
         # the legends name the instruments (a session of one has a single entry, "distance (mm)")
-        rrb.TimeSeriesView(name=f"distance (mm; the axis ends at {DISTANCE_RANGE[1]:g})", origin=ENTITY_SERIES_DISTANCE,
+        rrb.TimeSeriesView(name=f"distance (mm; the axis ends at {DISTANCE_RANGE[1]:g})", origin=at(ENTITY_SERIES_DISTANCE),
                            axis_x=linked, axis_y=rrb.ScalarAxis(range=DISTANCE_RANGE),
                            plot_legend=rrb.PlotLegend(rrb.components.Corner2D.RightTop)),
-        rrb.TimeSeriesView(name="signal -log10 max(|d|, 1e-4 m)", origin=ENTITY_SERIES_SIGNAL, axis_x=linked,
+        rrb.TimeSeriesView(name="signal -log10 max(|d|, 1e-4 m)", origin=at(ENTITY_SERIES_SIGNAL), axis_x=linked,
                            axis_y=rrb.ScalarAxis(range=SIGNAL_RANGE),
                            plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
         # (the magnitude only: a short plot shows three legend entries; the components are in the recording)
-        rrb.TimeSeriesView(name="force |F| (N)", origin=ENTITY_SERIES_FORCE, axis_x=linked,
-                           contents=[f"+ {ENTITY_SERIES_FORCE}/magnitude"], plot_legend=rrb.PlotLegend(visible=False)),
-        rrb.TimeSeriesView(name=contact_name, origin=ENTITY_SERIES_CONTACT, axis_x=linked,
+        rrb.TimeSeriesView(name="force |F| (N)", origin=at(ENTITY_SERIES_FORCE), axis_x=linked,
+                           contents=[f"+ {at(ENTITY_SERIES_FORCE)}/magnitude"], plot_legend=rrb.PlotLegend(visible=False)),
+        rrb.TimeSeriesView(name=contact_name, origin=at(ENTITY_SERIES_CONTACT), axis_x=linked,
                            axis_y=rrb.ScalarAxis(range=(-0.05, 1.05)), plot_legend=rrb.PlotLegend(visible=False)),
-        *([rrb.TimeSeriesView(name="evidence for contact: log LR (> 0: contact)", origin=ENTITY_SERIES_EVIDENCE,
+        *([rrb.TimeSeriesView(name="evidence for contact: log LR (> 0: contact)", origin=at(ENTITY_SERIES_EVIDENCE),
                               axis_x=linked, axis_y=rrb.ScalarAxis(range=EVIDENCE_RANGE),
                               plot_legend=rrb.PlotLegend(visible=False))] if with_model else []),
         rrb.Tabs(
-            rrb.TimeSeriesView(name="checks: score (> 1 fires), markers where fired", origin=ENTITY_SERIES_DIAGNOSTICS,
+            rrb.TimeSeriesView(name="checks: score (> 1 fires), markers where fired", origin=at(ENTITY_SERIES_DIAGNOSTICS),
                                axis_x=linked, axis_y=rrb.ScalarAxis(range=DIAGNOSTICS_RANGE),
                                plot_legend=rrb.PlotLegend(rrb.components.Corner2D.LeftTop)),
-            rrb.TextLogView(name="log", origin=ENTITY_LOG),
-            *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=ENTITY_SERIES_TIP,
+            rrb.TextLogView(name="log", origin=at(ENTITY_LOG)),
+            *([rrb.TimeSeriesView(name="tool tip: kinematic vs mask (px, mm)", origin=at(ENTITY_SERIES_TIP),
                                   axis_x=linked)] if with_kinematics else []),
-            *([rrb.TimeSeriesView(name="lag: files complete -> logged (ms)", origin=ENTITY_SERIES_LAG,
+            *([rrb.TimeSeriesView(name="lag: files complete -> logged (ms)", origin=at(ENTITY_SERIES_LAG),
                                   axis_x=linked)] if with_lag else []),
             active_tab=0,
         ),

@@ -41,12 +41,14 @@ from contact_viz.pipeline.extract import iter_frame_results
 from contact_viz.viz.frame_log import (  # noqa: F401 (re-exported)
     FrameLogger, InstrumentPosteriors, contact_instrument, contact_text, nearest_instrument)
 from contact_viz.viz.options import IMAGE_MODES, DebuggerOptions, RunSummary, select_frames  # noqa: F401
+from contact_viz.viz.rooted import rooted
 from contact_viz.viz.sinks import flush
 
 __all__ = [
     "DebuggerOptions",
     "InstrumentPosteriors",
     "RunSummary",
+    "log_session",
     "run_debugger",
     "select_frames",
 ]
@@ -109,3 +111,19 @@ def run_debugger(
                                 stop_signal=stop_signal, wait_s=wait_s, image_wait_s=image_wait_s)
         flush(rec)
     return summary
+
+
+def log_session(
+    rec,
+    session: Session,
+    *,
+    model=None,
+    options: DebuggerOptions = DebuggerOptions(),
+    root: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    keep_partial: bool = True,
+) -> RunSummary:
+    """:func:`run_debugger` into the caller's ``rec`` with every entity under ``root`` (None: the debugger's own
+    paths, as `contact-viz SESSION` records them); the one logging path of the debugger, the CLI's included."""
+    return run_debugger(session, rooted(rec, root), options, model=model, progress=progress,
+                        keep_partial=keep_partial)

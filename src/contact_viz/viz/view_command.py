@@ -1,7 +1,7 @@
 """`contact-viz view`: a session (finished, or followed while it is recorded) into a Rerun recording.
 
 The command line fills a :class:`ViewRequest`; :func:`run_view` checks it, opens the model, the
-session and the sinks, runs :func:`contact_viz.viz.debugger.run_debugger` or
+session and the sinks, runs :func:`contact_viz.viz.debugger.log_session` or
 :func:`contact_viz.viz.follow.follow_session`, closes the recording (the .rrd appears under its
 name only then) and returns the lines to print and the exit status. Bad input raises ValueError or
 SessionError with the one line to show; a failing sink a SinkError.
@@ -21,7 +21,7 @@ from contact_viz.io.live import FollowParams
 from contact_viz.io.session import open_session
 from contact_viz.params import LabelParams, PatchParams, to_dict
 from contact_viz.viz.blueprint import default_blueprint
-from contact_viz.viz.debugger import DebuggerOptions, run_debugger, select_frames
+from contact_viz.viz.debugger import DebuggerOptions, log_session, select_frames
 from contact_viz.viz.sinks import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT, SinkError, open_recording
 
 
@@ -141,7 +141,7 @@ def _serve_until_stopped(close: Callable[[], None]) -> None:
 
 def _run(r: ViewRequest, session, opened, options, model, progress):
     if r.follow is None:
-        return run_debugger(session, opened.rec, options, model=model, progress=progress)
+        return log_session(opened.rec, session, model=model, options=options, progress=progress)
     from contact_viz.viz.follow import follow_session
 
     return follow_session(r.session_dir, opened.rec, options, model, r.follow,
