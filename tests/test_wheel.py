@@ -39,7 +39,8 @@ def built(tmp_path_factory):
     for rel in tracked_files():
         (source / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(ROOT / rel, source / rel)
-    run([sys.executable, "-m", "build", "--sdist", "--wheel", "--outdir", str(tmp / "dist"), str(source)])
+    # the sdist first, then the wheel built from the sdist (python -m build's default): a broken sdist fails here
+    run([sys.executable, "-m", "build", "--outdir", str(tmp / "dist"), str(source)])
     return tmp, sorted((tmp / "dist").glob("*.whl")), sorted((tmp / "dist").glob("*.tar.gz"))
 
 
@@ -53,6 +54,7 @@ def test_the_wheel_holds_the_compiled_kernel_and_the_sdist_its_source(built):
 
     members = tarfile.open(sdists[0]).getnames()
     assert any(m.endswith("src/contact_viz/geometry/_patch_kernels.pyx") for m in members)
+    assert not any(m.endswith("_patch_kernels.c") for m in members)  # generated: built from the .pyx
 
 
 def test_the_wheel_installs_and_runs_in_a_fresh_environment(built):
