@@ -6,11 +6,23 @@ inside the commands that use them, so `contact-viz extract` never pays for them 
 
 from __future__ import annotations
 
-import warnings
-from pathlib import Path
-from typing import Annotated, Optional
+import signal
+import sys
+import threading
 
-import typer
+# A stop signal (SIGINT, SIGTERM, SIGHUP) while the command starts up, before main() installs the console's
+# handlers, is noted here and answered with its line by main(): without this, a signal in the first ~0.1-0.5 s
+# (imports; longer on a loaded machine) killed the command silently. Only when this module runs the command.
+_EARLY_STOP: list[int] = []
+if (__name__ == "__main__" or sys.argv[0].endswith("contact-viz")) and threading.current_thread() is threading.main_thread():
+    for _signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(_signum, lambda signum, frame: _EARLY_STOP.append(int(signum)))
+
+import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Annotated, Optional  # noqa: E402
+
+import typer  # noqa: E402
 
 from contact_viz.cli_common import (
     CacheDir,
@@ -663,6 +675,10 @@ def main(argv: list[str] | None = None) -> None:
         console.VERBOSE = True
     console.quiet_libraries(console.VERBOSE)  # before OpenCV, workers or Rerun start
     console.stop_on_signals()  # SIGTERM and SIGHUP stop a command as Ctrl-C does
+    if _EARLY_STOP:  # one came while the command started
+        line, status = console.stop_line(console.Stopped(_EARLY_STOP[-1]))
+        typer.echo(line, err=True)
+        raise SystemExit(status)
     try:
         commands = _commands()
         if args and not args[0].startswith("-") and args[0] not in commands:
