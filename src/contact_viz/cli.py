@@ -9,12 +9,14 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+from multiprocessing import parent_process
 
 # A stop signal (SIGINT, SIGTERM, SIGHUP) while the command starts up, before main() installs the console's
 # handlers, is noted here and answered with its line by main(): without this, a signal in the first ~0.1-0.5 s
 # (imports; longer on a loaded machine) killed the command silently. Only when this module runs the command.
 _EARLY_STOP: list[int] = []
-if (__name__ == "__main__" or sys.argv[0].endswith("contact-viz")) and threading.current_thread() is threading.main_thread():
+if ((__name__ == "__main__" or sys.argv[0].endswith("contact-viz")) and parent_process() is None  # not a worker
+        and threading.current_thread() is threading.main_thread()):
     for _signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(_signum, lambda signum, frame: _EARLY_STOP.append(int(signum)))
 

@@ -199,8 +199,17 @@ def run_batch(
     try:
         return _run_batch(source, out, options, engine, progress)
     except BaseException:
+        _sweep_staging(out)  # a worker stopped mid-write leaves its staging file; its process is gone by now
         _remove_new_empty_folders(out, before)
         raise
+
+
+def _sweep_staging(top: Path) -> None:
+    """Remove the staging files of processes that are gone, in ``top`` and every folder under it."""
+    from contact_viz.io.atomic import sweep_stale_in
+
+    for dirpath, _, _ in os.walk(top):
+        sweep_stale_in(dirpath)
 
 
 def _folders(top: Path) -> set[str]:
