@@ -148,13 +148,19 @@ def test_fit_needs_two_sessions_and_load_model_errors(study, tmp_path):
         load_model(bad)
 
 
-def test_model_file_round_trip(tmp_path):
-    rng = np.random.default_rng(0)
+def square_wave_sessions(seed: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Three 200-frame sessions: contact labels in a square wave, the signal 3.0 in contact and 1.8 out, noise 0.3."""
+    rng = np.random.default_rng(seed)
     signals, labels = [], []
     for _ in range(3):
         y = (np.sin(np.arange(200) / 15) > 0).astype(np.int8)
         signals.append(np.where(y == 1, 3.0, 1.8) + rng.normal(0, 0.3, 200))
         labels.append(y)
+    return signals, labels
+
+
+def test_model_file_round_trip(tmp_path):
+    signals, labels = square_wave_sessions(seed=0)
     ens = LosoEnsemble().fit(signals, labels, session_names=["a", "b", "c"])
     model = ContactModel(ens, PatchParams(n2=15), LabelParams(3.0), ({"name": "a", "path": "/x", "frames": 200},))
     back = load_model(save_model(model, tmp_path / "m.json"))
@@ -227,12 +233,7 @@ def test_fit_records_the_model_kind_and_model_kind_selects_one(study, tmp_path):
 
 def test_a_model_file_without_model_kind_loads_as_the_papers(tmp_path):
     """A model.json written before the kinds existed: no "model_kind", HMMParams without it, no emission."""
-    rng = np.random.default_rng(1)
-    signals, labels = [], []
-    for _ in range(3):
-        y = (np.sin(np.arange(200) / 15) > 0).astype(np.int8)
-        signals.append(np.where(y == 1, 3.0, 1.8) + rng.normal(0, 0.3, 200))
-        labels.append(y)
+    signals, labels = square_wave_sessions(seed=1)
     ens = LosoEnsemble().fit(signals, labels, session_names=["a", "b", "c"])
     data = json.loads(save_model(ContactModel(ens, PatchParams(), LabelParams(), ()), tmp_path / "new.json").read_text())
     old = json.loads(json.dumps(data))

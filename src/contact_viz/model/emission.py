@@ -87,6 +87,11 @@ class GaussianEmission:
         self.means_, self.vars_ = np.asarray(means, np.float64), np.asarray(vars, np.float64)
         return self
 
+    @classmethod
+    def _with_gaussians(cls, means: Any, vars: Any) -> GaussianEmission:
+        """An unfitted instance holding the HMM's means and variances only: what each from_dict builds on."""
+        return GaussianEmission.fit(cls(), np.zeros(0), np.zeros(0, np.int64), means, vars)
+
     def log_likelihood_ratio(self, signal: Any) -> np.ndarray:
         return emission_log_likelihood_ratio(signal, self.means_, self.vars_)
 
@@ -95,7 +100,7 @@ class GaussianEmission:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], means: Any, vars: Any) -> GaussianEmission:
-        return cls().fit(np.zeros(0), np.zeros(0, np.int64), means, vars)
+        return cls._with_gaussians(means, vars)
 
 
 class FlatTailEmission(GaussianEmission):
@@ -146,8 +151,7 @@ class TiedEmission(GaussianEmission):
         _check_finite(data, ("var",), "tied emission")
         if not data["var"] > 0:
             raise ValueError(f"tied emission: expected var > 0 (dec^2), got {data['var']!r}")
-        model = cls()
-        GaussianEmission.fit(model, np.zeros(0), np.zeros(0, np.int64), means, vars)
+        model = cls._with_gaussians(means, vars)
         _require_ordered_means(model.means_, cls.kind)
         model.var_ = float(data["var"])
         return model
@@ -199,8 +203,7 @@ class ClippedEmission(GaussianEmission):
     @classmethod
     def from_dict(cls, data: dict[str, Any], means: Any, vars: Any) -> ClippedEmission:
         _check_finite(data, ("low", "high"), "clip emission")
-        model = cls()
-        GaussianEmission.fit(model, np.zeros(0), np.zeros(0, np.int64), means, vars)
+        model = cls._with_gaussians(means, vars)
         _require_ordered_means(model.means_, cls.kind)
         low, high, vertex = float(data["low"]), float(data["high"]), model._vertex()
         v0, v1 = _pair(model.vars_)
@@ -276,8 +279,7 @@ class IsotonicEmission(GaussianEmission):
                 or not np.isfinite(llr).all() or (np.diff(knots) <= 0).any() or (np.diff(llr) < 0).any()):
             raise ValueError("isotonic emission: expected knots (increasing) and llr (nondecreasing) of one "
                              "length >= 1, finite")
-        model = cls()
-        GaussianEmission.fit(model, np.zeros(0), np.zeros(0, np.int64), means, vars)
+        model = cls._with_gaussians(means, vars)
         model.knots_, model.llr_, model.prior_ = knots, llr, float(data["prior"])
         return model
 
