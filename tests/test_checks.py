@@ -253,6 +253,30 @@ def test_force_lag_finds_an_injected_offset_and_not_a_clean_one():
     assert force_lag(np.full(n, np.nan), signal, t) is None
 
 
+def test_force_lag_needs_a_force_above_its_noise():
+    """A 30-frame session without contact (the tool approaching, the force only sensor noise of 0.1 N): the
+    noise's crossings of its own 20th-95th percentile range paired with the approaching signal read as a lag
+    (min_force_swing_n 0: it fires); below a 0.5 N swing no lag is measured. A real contact of 3 N in the same
+    noise, 6 frames late, still fires."""
+    rng = np.random.default_rng(3)
+    n = 30
+    t = np.arange(n) / 30.0
+    signal = np.linspace(1.3, 2.3, n) + 0.03 * rng.standard_normal(n)  # nearing the tissue, never touching it
+    hits = 0
+    for seed in range(20):
+        noise = 0.1 * np.random.default_rng(seed).standard_normal(n)
+        assert force_lag(noise, signal, t) is None
+        loose = force_lag(noise, signal, t, DiagnosticParams(min_force_swing_n=0.0))
+        hits += loose is not None and loose.fired
+    assert hits >= 3  # without the swing rule the noise alone fires: 4 of these 20 draws
+    contact = np.zeros(n, bool)
+    contact[8:20] = True
+    force = np.roll(np.where(contact, 3.0, 0.0), 6) + 0.1 * rng.standard_normal(n)
+    stepped = np.where(contact, 3.0, 1.5) + 0.03 * rng.standard_normal(n)
+    late = force_lag(force, stepped, t)
+    assert late is not None and late.fired and late.lag_frames == 6
+
+
 def test_frame_time_problems_and_ranges():
     t = np.array([0, 1, 2, 3, 4, 4, 5, 6, 13, 14]) / 30.0  # frame 5 repeats a time; 6 frames missing before 8
     assert frame_time_problems(t) == [5, 8]

@@ -29,13 +29,15 @@ def literal_half_occluded(disparity: np.ndarray, tool: np.ndarray, params: Occlu
             if not right_cols:
                 continue
             m, big_m = min(right_cols), max(right_cols)
+            nearest = max(disparity[y, c] for c in range(a, b + 1) if math.isfinite(disparity[y, c]))
             tissue = [c for c in range(a) if not tool[y, c] and math.isfinite(disparity[y, c])]
             d_s, found = 0.0, False
             if tissue:
                 for _ in range(params.iterations):
                     first_strip_col = math.ceil(m + d_s)
                     beyond = [c for c in tissue if c <= first_strip_col - 1 - params.probe_gap_px]
-                    chosen = beyond[-params.probe_count:]
+                    chosen = [c for c in beyond[-params.probe_count:]  # in front of the tool: not read
+                              if disparity[y, c] <= nearest * (1 + params.nearer_fraction)]
                     found = bool(chosen)
                     new = float(np.median([disparity[y, c] for c in chosen])) if chosen else 0.0
                     if new == d_s:
@@ -66,10 +68,33 @@ def test_worked_row():
     np.testing.assert_array_equal(literal_half_occluded(disparity, tool, OcclusionParams()), expected)
 
 
+def test_a_fold_nearer_than_the_tool_is_not_the_tissue_behind_it():
+    """Tool at columns 100-140, disparity 80; the tissue behind it at 40. Row 0: only a fold of tissue nearer
+    than the tool (disparity 90, columns 0-39) has depth left of the strip, and the strip carries the tool's
+    disparity (SGBM's drag). Read as the tissue, the fold put the edge at 20 + 90 = 110, past the tool: no
+    strip, the dragged pixels kept as tissue at the tool's depth. Not read, nothing behind the tool is known:
+    all that it could hide, 20-99. Row 1: the far tissue next to the widest edge (10-17), the fold beyond
+    it (0-9): the strip is 60-99."""
+    width = 200
+    tool = np.zeros((2, width), bool)
+    tool[:, 100:141] = True
+    disparity = np.full((2, width), np.nan)
+    disparity[:, 100:141] = 80.0
+    disparity[0, 0:40] = 90.0  # the fold, in front of the tool
+    disparity[1, 0:10], disparity[1, 10:18] = 90.0, 40.0
+    disparity[:, 60:100] = 80.0  # the tool's disparity dragged into the strip
+    got = half_occluded(disparity, tool)
+    np.testing.assert_array_equal(np.flatnonzero(got[0]), np.arange(20, 100))
+    np.testing.assert_array_equal(np.flatnonzero(got[1]), np.arange(60, 100))
+    np.testing.assert_array_equal(literal_half_occluded(disparity, tool, OcclusionParams()), got)
+    assert not half_occluded(disparity, tool, OcclusionParams(nearer_fraction=1.0))[0].any()  # read: no strip
+
+
 def test_contact_and_thin_tool():
     """Tissue rising to the tool's disparity at its edge (contact, one continuous surface): no pixel is
     hidden, so at most the few px the probe's offset adds; a tool thinner than the disparity step hides
-    only the columns its footprint covers; a tool farther than the tissue hides nothing."""
+    only the columns its footprint covers; a tool farther than all the tissue of its row (tissue more than
+    nearer_fraction in front of it is not read) leaves the tissue behind it unknown: all it could hide."""
     width = 200
     tool = np.zeros((3, width), bool)
     tool[:, 100:141] = True
@@ -84,8 +109,9 @@ def test_contact_and_thin_tool():
     np.testing.assert_array_equal(np.flatnonzero(half_occluded(flat, thin)[0]), np.arange(60, 71))
     unknown = np.where(thin, 80.0, np.nan)  # no tissue depth left of it: all it could hide, 20-99
     np.testing.assert_array_equal(np.flatnonzero(half_occluded(unknown, thin)[0]), np.arange(20, 100))
-    behind = np.where(thin, 30.0, 40.0)  # farther than the tissue
-    assert not half_occluded(behind, thin).any()
+    behind = np.where(thin, 30.0, 40.0)  # farther than all the tissue of the row: what lies behind it is not
+    np.testing.assert_array_equal(np.flatnonzero(half_occluded(behind, thin)[0]), np.arange(70, 100))  # known
+    assert not half_occluded(np.where(thin, 39.0, 40.0), thin).any()  # within 5%: read, and nothing is hidden
 
 
 def random_scene(rng, height=12, width=160):

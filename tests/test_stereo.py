@@ -412,3 +412,42 @@ def test_depth_command_line_full_frame_and_min_depth(tmp_path):
     assert (tmp_path / "out" / "0.npy").is_file()
     bad = CliRunner().invoke(app, ["depth", str(root), "--min-depth-mm", "0"])
     assert bad.exit_code == 2 and "--min-depth-mm: expected a depth > 0 mm, got 0" in bad.output
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_drop_speckles_against_flood_fill(seed):
+    """drop_speckles (OpenCV's filterSpeckles at 1/16 px) against a literal flood fill: 4-connected regions of
+    finite disparities whose neighbours differ by at most the range (in 1/16 px), of at most window pixels, go."""
+    from collections import deque
+
+    from contact_viz.geometry.stereo import SUBPIXEL, drop_speckles
+
+    rng = np.random.default_rng(seed)
+    height, width, window, spread = 30, 40, 12, 2
+    levels = rng.choice([10.0, 10.5, 14.0, 30.0], size=(height // 3, width // 4))
+    disparity = np.kron(levels, np.ones((3, 4))) + rng.choice([0, 0.0625, 0.125, 3.0], (height, width), p=[.6, .2, .15, .05])
+    disparity[rng.random((height, width)) < 0.15] = np.nan
+    fixed = np.where(np.isfinite(disparity), np.rint(disparity * SUBPIXEL), np.nan)
+    label = np.full((height, width), -1)
+    expected = disparity.copy()
+    for y0 in range(height):
+        for x0 in range(width):
+            if label[y0, x0] >= 0 or not np.isfinite(fixed[y0, x0]):
+                continue
+            label[y0, x0] = 1
+            members, queue = [], deque([(y0, x0)])
+            while queue:
+                y, x = queue.popleft()
+                members.append((y, x))
+                for v, u in ((y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)):
+                    if (0 <= v < height and 0 <= u < width and label[v, u] < 0 and np.isfinite(fixed[v, u])
+                            and abs(fixed[v, u] - fixed[y, x]) <= spread * SUBPIXEL):
+                        label[v, u] = 1
+                        queue.append((v, u))
+            if len(members) <= window:
+                for y, x in members:
+                    expected[y, x] = np.nan
+    got = drop_speckles(disparity.astype(np.float32), window, spread)
+    assert np.isnan(expected).sum() > np.isnan(disparity).sum() + 10  # some speckles went
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+    np.testing.assert_array_equal(got[np.isfinite(got)], disparity.astype(np.float32)[np.isfinite(got)])

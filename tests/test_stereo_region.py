@@ -57,15 +57,16 @@ def test_tiles_cover_the_region_row_by_row():
 D_BG, D_BOX = 20, 52  # disparities of the plane and the box at full resolution, px
 
 
-def box_pair(height=360, width=1280, seed=0, d_bg=D_BG, d_box=D_BOX):
-    """A textured plane (disparity d_bg) and a textured box in front of it (d_box); texture in 2x2 px cells so
-    that it survives matching at half size. Returns (left, right, box mask)."""
+def box_pair(height=360, width=1280, seed=0, d_bg=D_BG, d_box=D_BOX, box=(100, 260, 500, 700)):
+    """A textured plane (disparity d_bg) and a textured box in front of it (d_box) on rows y0..y1-1 and columns
+    x0..x1-1 of the left view (``box``); texture in 2x2 px cells so that it survives matching at half size.
+    Returns (left, right, box mask)."""
     rng = np.random.default_rng(seed)
     pad = d_box + 2
     cells = lambda lo: np.repeat(np.repeat(rng.integers(lo, 256, (height // 2 + 1, (width + 2 * pad) // 2 + 1, 3),
                                                         dtype=np.uint8), 2, 0), 2, 1)[:height, :width + 2 * pad]
     plane, box_tex = cells(0), cells(150)
-    y0, y1, x0, x1 = 100, 260, 500, 700
+    y0, y1, x0, x1 = box
     left = plane[:, pad:pad + width].copy()
     right = plane[:, pad + d_bg:pad + d_bg + width].copy()
     left[y0:y1, x0:x1] = box_tex[y0:y1, pad + x0:pad + x1]
@@ -189,3 +190,78 @@ def test_band_depth_at_the_papers_resolution(synth_frame):
     if left.shape[1] == 1920:  # matched at full size, the band was mostly unmatched (validity collapsed)
         full_size, _ = depth_of(SGBMParams(downscale=1, region=False))
         assert (band & np.isfinite(full_size)).sum() < 0.6 * valid.sum()
+
+
+def narrow_box_pair(box_width, d_bg, d_box, seed, height=360, width=1280):
+    """:func:`box_pair` with a box only ``box_width`` px wide, narrower than d_box - d_bg, as an instrument's
+    tip at close range. Left of the box the plane is hidden from the right camera on the columns
+    x0 - (d_box - d_bg) .. x0 - (d_box - d_bg) + box_width - 1 only: between there and the box both cameras
+    see it. Returns (left, right, box mask, x0)."""
+    x0 = width * 15 // 32  # 600 at 1280 px
+    return (*box_pair(height, width, seed, d_bg, d_box, box=(100, 260, x0, x0 + box_width)), x0)
+
+
+@pytest.mark.parametrize("width, height", [(640, 360), (1280, 360), (1920, 1080)])
+@pytest.mark.parametrize("box_width, d_bg, d_box, seed", [(40, 40, 120, 0), (24, 40, 120, 1), (60, 40, 160, 2),
+                                                          (30, 30, 100, 3)])
+def test_the_plane_beside_a_narrow_tool_stays_matched(box_width, d_bg, d_box, seed, width, height):
+    """Beside a tool narrower than its disparity step (a tip at close range) both cameras see the plane
+    between the half-occluded strip and the tool. Two things used to take it: the right view's hidden strip
+    inpainted the whole step right of the tool (now only the tissue under the tool in the left view: its
+    own width), and a tile whose crop had no tissue left of the widest strip gave up the whole span the tool
+    could hide (now the coarse pass says the tissue's disparity there). Measured share of the plane matched
+    there, before / now: 640x360 0.36-0.70 / 0.68-0.94, 1280x360 0.28-0.55 / 0.81-0.92, 1920x1080 0.12-0.52 /
+    0.60-0.86; every match within 3 px of the plane's disparity, before and now."""
+    left, right, tool, x0 = narrow_box_pair(box_width, d_bg, d_box, seed, height=height, width=width)
+    params = SGBMParams().resolve(width, fx_px=1000.0 * width / 1280, baseline_m=0.004)
+    disparity = region_sgbm_disparity(left, right, tool, params).disparity_px
+    visible = disparity[105:255, x0 - (d_box - d_bg) + box_width + 2:x0]
+    assert np.isfinite(visible).mean() > 0.55
+    assert np.all(np.abs(visible[np.isfinite(visible)] - d_bg) <= 3)
+
+
+def test_a_tiles_search_range_reaches_the_tissue_beside_its_region(monkeypatch):
+    """When the coarse pass has no tissue inside a tile's region (beside a wide half-occluded strip its
+    fattened tool covers the rest), the far end of the tile's search range reaches the coarse disparities
+    beside the region (``range_context_px``, by default as far as the whole search range): the tissue there is
+    then matched at its own disparity, not the tool's (with no context, the range holds only the box's
+    disparity and the plane beside the box reads it)."""
+    import contact_viz.geometry.stereo_region as stereo_region
+
+    left, right, tool = box_pair()
+    real = stereo_region.coarse_disparity
+
+    def no_tissue_in_region(small_l, small_r, params):  # the coarse pass with the region's tissue unmatched
+        coarse, n = real(small_l, small_r, params)
+        # the region (grown by a coarse pixel's width, so that every matching pixel of it is covered)
+        region = fine_region(tool, SGBMParams().region_px + 4 * n)[::2 * n, ::2 * n][:coarse.shape[0], :coarse.shape[1]]
+        box = tool[::2 * n, ::2 * n][:coarse.shape[0], :coarse.shape[1]]
+        return np.where(region & ~box, np.nan, np.where(box, D_BOX / 2, coarse)).astype(np.float32), n
+
+    monkeypatch.setattr(stereo_region, "coarse_disparity", no_tissue_in_region)
+    right_of = np.zeros_like(tool)
+    right_of[110:250, 708:724] = True  # right of the box: both cameras see the plane
+    read = {}
+    for context in (None, 32, 0):  # None: the default, the whole search range
+        disparity = region_sgbm_disparity(left, right, tool, SGBMParams(range_context_px=context)).disparity_px
+        read[context] = np.mean(np.abs(disparity[right_of] - D_BG) <= 1.0)  # NaN counts as not read
+    assert read[None] > 0.9 and read[32] > 0.9 and read[0] < 0.1
+
+
+@pytest.mark.parametrize("width, height, rows", [(1280, 720, 6), (1280, 720, 10), (1920, 1080, 6)])
+def test_a_sliver_of_a_tool_at_the_image_edge_gets_its_own_depth(width, height, rows):
+    """An instrument showing only its last few rows at the top of the image (here a textured box, disparity
+    140 px at 1280 over a plane at 40) is too thin for the coarse pass, whose disparities set each tile's
+    search range: the tile searched only the plane's and gave the tool the plane's depth. A tile whose tool
+    pixels the coarse pass mostly missed searches up to the nearest depth. Measured share of the sliver
+    within 2 px of its disparity, with / without (range_tool_seen_min 0): 1280 px, 6 rows 0.81 / 0.00; 10 rows
+    0.89 / 0.00; 1920 px, 6 rows 0.66 / 0.00 (640 px: 0.90 either way; 14 rows and more: the same either way)."""
+    d_bg, d_box = 40 * width // 1280, 140 * width // 1280
+    x0 = width * 15 // 32
+    left, right, tool = box_pair(height, width, 0, d_bg, d_box, box=(0, rows, x0, x0 + width // 8))
+    found = {}
+    for seen in (SGBMParams().range_tool_seen_min, 0.0):
+        params = SGBMParams(range_tool_seen_min=seen).resolve(width, fx_px=1000.0 * width / 1280, baseline_m=0.004)
+        disparity = region_sgbm_disparity(left, right, tool, params).disparity_px
+        found[seen] = np.mean(np.abs(disparity[tool] - d_box) <= 2)  # NaN counts as not found
+    assert found[SGBMParams().range_tool_seen_min] > 0.6 and found[0.0] < 0.1

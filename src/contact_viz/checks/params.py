@@ -118,6 +118,10 @@ class DiagnosticParams:
     signal_level: float = checked(0.85, gt=0, lt=1)  # signal "on" above this share of its range (5th-95th pct.), 0-1
     min_lag_frames: int = checked(3, ge=1)  # a force lag of at least this many frames fires, frames
     min_lag_correlation: float = checked(0.3, ge=-1, le=1)  # ... when its correlation peak is at least this, -1..1
+    # a force whose swing (95th minus 20th percentile) is below this never left its sensor noise: no contact to time,
+    # no lag measured (synthetic noise 0.1 N: a 30-frame session without contact swung 0.26 N and read a 6-frame
+    # lag; contacts reach 2 N and more), N
+    min_force_swing_n: float = checked(0.5, ge=0)
     # not_rectified (checks.rectification): |median vertical offset| of SIFT features matched between left and right
     # above this fires, px of the session's images. Measured (bench_rectification.py): rectified pairs 0.00-0.03
     # (synth, four phantoms, 640x360 and 1280x720), 0.06 (Middlebury motorcycle), 0.35 (the SCARED keyframe); with

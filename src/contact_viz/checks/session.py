@@ -40,7 +40,7 @@ def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
     tissue, like the force in contact. Measured around complete contacts only (None without one).
     ``suspect``: frames (bool per frame) where a frame check fired;
     their signal is left out (a mask or depth failure would look like a lag). None when the session has
-    no force (or too few frames).
+    no force, too few frames, or a force that never leaves its noise (``min_force_swing_n``).
     """
     force = np.asarray(force_n, dtype=np.float64)
     signal = np.array(signal, dtype=np.float64)
@@ -59,8 +59,8 @@ def force_lag(force_n: np.ndarray, signal: np.ndarray, timestamps_s: np.ndarray,
     # approaching, the force only with indentation); the on/off edges of the two coincide within a frame.
     f_lo, f_hi = np.nanpercentile(force, 20), np.nanpercentile(force, 95)
     finite = np.isfinite(signal)
-    if finite.sum() < 8 or not f_hi > f_lo:
-        return None
+    if finite.sum() < 8 or not f_hi > f_lo or f_hi - f_lo < params.min_force_swing_n:
+        return None  # (a force within its noise has no contact whose timing could be compared)
     s_lo, s_hi = np.nanpercentile(signal, 5), np.nanpercentile(signal, 95)
     force = np.where(np.isfinite(force), (force > f_lo + params.force_level * (f_hi - f_lo)).astype(float), np.nan)
     signal = np.where(finite, (signal > s_lo + params.signal_level * (s_hi - s_lo)).astype(float), np.nan)

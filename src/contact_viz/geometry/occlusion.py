@@ -16,9 +16,13 @@ like tissue touching the tool). The strip's edge depends on d_s and d_s on where
 edge is found by a fixed-point iteration that starts from the widest strip the tool can cast (tissue
 at infinity, d_s = 0, edge at m) and moves towards the tool: d_s = the median of the ``probe_count``
 valid tissue disparities of the row nearest to the strip on its left, past the ``probe_gap_px``
-columns next to it (fewer where there are fewer; none: the strip is everything from m to the tool
-that it could hide, for nothing right of there is read); the edge = ceil(m + d_s). On tissue of one depth it settles after one step; on tissue rising towards the tool (a
-tool in contact), the strip shrinks to the gap left between the tool and the rising tissue.
+columns next to it, less those more than ``nearer_fraction`` nearer than the run's nearest tool
+pixel (a fold of tissue in front of the tool is not what lies behind the strip: read, it moved the
+edge past the strip's own pixels, and the tool's disparity dragged there was read next); fewer where
+there are fewer; none: the strip is everything from m to the tool that it could hide, for nothing
+right of there is read; the edge = ceil(m + d_s). On tissue of one depth it settles after one step;
+on tissue rising towards the tool (a tool in contact), the strip shrinks to the gap left between the
+tool and the rising tissue.
 
 Pure functions over arrays, vectorised over every run of every row (:func:`half_occluded`); the tests
 compare it with a literal loop over rows and runs.
@@ -44,6 +48,10 @@ class OcclusionParams:
     probe_gap_px: int = checked(2, ge=0)
     probe_count: int = checked(8, ge=1)  # valid tissue pixels of the row whose median gives its disparity, px
     iterations: int = checked(6, ge=1)  # steps of the edge's fixed-point iteration (one settles on flat tissue)
+    # a probed pixel whose disparity exceeds the run's largest (its nearest tool pixel's) by more than this share
+    # lies in front of the tool (a fold of tissue towards the camera; 5%: 1.5 mm at 30 mm): not the tissue behind
+    # the strip, not read, fraction
+    nearer_fraction: float = checked(0.05, ge=0)
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -110,8 +118,9 @@ def _strips(disparity: np.ndarray, tool: np.ndarray, params: OcclusionParams) ->
     bounds = np.searchsorted(pixels, starts)
     low = np.minimum.reduceat(np.where(finite, right_col, np.inf), bounds)
     high = np.maximum.reduceat(np.where(finite, right_col, -np.inf), bounds)
+    nearest = np.maximum.reduceat(np.where(finite, flat_d[pixels], -np.inf), bounds)  # the run's largest d'
     known = np.isfinite(low)
-    rows, firsts, low, high = rows[known], firsts[known], low[known], high[known]
+    rows, firsts, low, high, nearest = rows[known], firsts[known], low[known], high[known], nearest[known]
     if rows.size == 0:
         return out
 
@@ -132,7 +141,8 @@ def _strips(disparity: np.ndarray, tool: np.ndarray, params: OcclusionParams) ->
         first = np.maximum(at - count, lo)  # the (at most) count nearest of them on this row
         index = first[:, None] + offsets[None, :]
         window = np.where(index < at[:, None], values[np.minimum(index, values.size - 1)], np.nan)
-        found = at > lo
+        window[window > nearest[:, None] * (1 + params.nearer_fraction)] = np.nan  # in front of the tool
+        found = np.isfinite(window).any(axis=1)
         with np.errstate(all="ignore"):
             new = np.where(found, np.nanmedian(np.where(found[:, None], window, 0.0), axis=1), 0.0)
         if np.array_equal(new, tissue_d):

@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from contact_viz.geometry.occlusion import half_occluded
+from contact_viz.geometry.occlusion import half_occluded, tool_runs
 from contact_viz.params import check_fields, checked
 
 __all__ = [
@@ -109,6 +109,14 @@ class SGBMParams:
     coarse_width_px: int = checked(480, ge=16)  # the coarse full-frame pass matches at most this wide, px
     tile_rows_px: int = checked(48, ge=8)  # rows of one fine tile, px at the matching resolution
     range_margin_px: int = checked(4, ge=0)  # a tile's search range: the coarse disparities +- this, matching px
+    # ... found in the tile's region; its far end also reaches the farthest coarse disparity this far beside the
+    # region along the rows, matching px (None: the whole search range, the widest strip a tool can cast). The
+    # coarse pass may have no tissue inside the region: beside a wide half-occluded strip, between two instruments,
+    # near the image's edge, its own tool fattened over what is left
+    range_context_px: int | None = checked(None, ge=0)
+    # a tile whose tool pixels the coarse pass matched fewer of than this share searches up to the nearest depth
+    # (min_depth_m): a tool too thin for the coarse pass (a sliver at the image's edge) is matched all the same
+    range_tool_seen_min: float = checked(0.5, ge=0, le=1)
     # Mask-aware matching (masked_sgbm_disparity), used when the frame's tool mask is known:
     tool_mask_aware: bool = True  # match the tissue with the tool removed (inpainted) from both views
     tool_margin_px: int = checked(1, ge=0)  # the tool region removed grows by this in both views, px
@@ -118,6 +126,9 @@ class SGBMParams:
     half_occluded_strip: bool = True
     # also inpaint, right of the tool in the right view, the tissue only the right camera sees (_hidden_strips)
     hidden_strip: bool = True
+    # OpenCV's speckle filter once more after the inpainted tool region is taken out: it had joined the tool's
+    # disparity dragged onto the tissue to that region (a narrow tip at close range) and kept it
+    respeckle: bool = True
     strip_probe_near_px: int = checked(8, ge=1)  # the tissue's disparity beside the tool is read from this far ...
     strip_probe_far_px: int = checked(16, ge=1)  # ... to this far right of the tool, px
     tool_rows_pad_px: int = checked(16, ge=0)  # the tool's disparity is matched on its bbox grown by this, px
@@ -298,6 +309,18 @@ def _sgbm(left: np.ndarray, right: np.ndarray, p: SGBMParams) -> np.ndarray:
     return disparity
 
 
+def drop_speckles(disparity_px: np.ndarray, window_px: int, range_px: int) -> np.ndarray:
+    """``disparity_px`` (H, W) float px, NaN = none, without its speckles: NaN on every 4-connected region
+    of at most ``window_px`` pixels whose neighbours differ by at most ``range_px`` (OpenCV's
+    filterSpeckles at the matcher's 1/16 px, as StereoSGBM applies it to its own output)."""
+    fixed = np.where(np.isfinite(disparity_px), np.rint(disparity_px * SUBPIXEL), -SUBPIXEL)
+    fixed = np.clip(fixed, -SUBPIXEL, np.iinfo(np.int16).max).astype(np.int16)
+    cv2.filterSpeckles(fixed, -SUBPIXEL, window_px, range_px * SUBPIXEL)
+    out = disparity_px.copy()
+    out[fixed == -SUBPIXEL] = np.nan
+    return out
+
+
 def _fill_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """``values`` with every pixel outside ``known`` replaced by the value of its nearest ``known`` pixel."""
     if known.all():
@@ -355,27 +378,30 @@ def _hidden_strips(tool: np.ndarray, tool_disparity_px: np.ndarray, around_dispa
                    margin_px: int, probe_px: tuple[int, int]) -> np.ndarray:
     """Right-view pixels right of the tool that only the right camera sees: (H, W) bool.
 
-    Per row, right of each run of tool pixels ending at column x: from x - d_tool (the run's end in the
-    right view) to x + margin_px - d_bg, where d_bg is the median finite disparity of the non-tool
-    pixels probe_px[0]..probe_px[1] px right of x (rows y-1..y+1) in ``around_disparity_px``. The left
-    view's tool region ends at x + margin_px; with this strip, the right view's ends where the tissue
-    next to it lies (at d_bg), so the inpainted regions' edges line up at the tissue's disparity
-    instead of the tool's. Runs without a background disparity get no strip.
+    Per row, right of each run of tool pixels a..x: from x - d_tool (the run's end in the right view),
+    but not left of a - margin_px - d_bg, to x + margin_px - d_bg, where d_bg is the median finite
+    disparity of the non-tool pixels probe_px[0]..probe_px[1] px right of x (rows y-1..y+1) in
+    ``around_disparity_px``. These right-view columns show the tissue that lies under the (grown) run in
+    the left view. The left view's tool region ends at x + margin_px; with this strip, the right view's
+    ends where the tissue next to it lies (at d_bg), so the inpainted regions' edges line up at the
+    tissue's disparity instead of the tool's. A run narrower than d_tool - d_bg (an instrument's tip at
+    close range) hides only its own width: the tissue left of it that both cameras see stays matchable.
+    Runs without a background disparity get no strip.
     """
     height, width = tool.shape
-    ends = tool.copy()
-    ends[:, :-1] &= ~tool[:, 1:]
     out = np.zeros((height, width), bool)
     lo_px, hi_px = probe_px
-    for y, x in zip(*np.nonzero(ends)):
+    run_rows, run_firsts, run_lasts = tool_runs(tool)
+    for y, a, x in zip(run_rows.tolist(), run_firsts.tolist(), run_lasts.tolist()):
         rows = slice(max(y - 1, 0), y + 2)
         cols = slice(min(x + lo_px, width), min(x + hi_px + 1, width))
         around = around_disparity_px[rows, cols][~tool[rows, cols]]
         around = around[np.isfinite(around)]
         if around.size == 0:
             continue
-        start = int(np.floor(x - tool_disparity_px[y, x]))
-        stop = int(np.floor(x + margin_px - float(np.median(around)))) + 1
+        background = float(np.median(around))
+        start = max(int(np.floor(x - tool_disparity_px[y, x])), int(np.floor(a - margin_px - background)))
+        stop = int(np.floor(x + margin_px - background)) + 1
         start, stop = max(start, 0), min(stop, width)
         if stop > start:
             out[y, start:stop] = True
@@ -394,6 +420,7 @@ def masked_sgbm_disparity(
     right_rgb: np.ndarray,
     tool_mask: np.ndarray,
     params: SGBMParams = SGBMParams(),
+    tissue_hint_px: np.ndarray | None = None,
 ) -> np.ndarray:
     """Disparity of a rectified pair whose left tool mask is known, without foreground fattening.
 
@@ -412,9 +439,13 @@ def masked_sgbm_disparity(
     2. The right-view tool region from it (:func:`right_view_tool_mask`).
     3. Plain SGBM on the pair with both tool regions inpainted; with ``hidden_strip``, the
        right view's region also covers, right of the tool, the tissue that only the right camera sees
+       (under the tool in the left view: for a tool narrower than its disparity step, its own width)
        (:func:`_hidden_strips`): otherwise the edges of the two inpainted regions line up at the tool's
        disparity and drag it 2-4 px over the tissue right of the tool (docs/depth.md).
-    4. Result: step 1 on the (left) tool, step 3 elsewhere; with ``occlusion_check``, a left
+    4. Result: step 1 on the (left) tool, step 3 elsewhere; with ``respeckle``, OpenCV's speckle
+       filter once more on step 3 with the left tool region taken out (inside SGBM the tool's disparity
+       dragged onto the tissue was joined to the inpainted region and kept: at close range, up to 25 px
+       left of a narrow tip); with ``occlusion_check``, a left
        pixel whose match falls in the right view's inpainted region (hidden behind the tool in the
        right view: no depth can be measured there; or in the strip, where it came out too wide) is NaN;
        with ``half_occluded_strip``, so is every pixel of the strip left of the tool that the right
@@ -424,8 +455,12 @@ def masked_sgbm_disparity(
        SGBM's isolated mismatches beside the tool are what the patch's minimum finds; on the
        study's training sessions the median brings the band within 3 mm from 91.0% to 92.4%.
 
-    ``tool_mask`` (H, W) bool or integer (nonzero = tool). Returns (H, W) float32 px, NaN where no
-    reliable match. An empty mask gives :func:`sgbm_disparity`.
+    ``tool_mask`` (H, W) bool or integer (nonzero = tool). ``tissue_hint_px`` (H, W) float px or None:
+    the scene's disparity from elsewhere (a tile's coarse pass), read by the strip test where this pair
+    matched no tissue left of the widest strip any tool of the row can cast (a crop's first columns,
+    whose matches lie outside it): without it a crop with no tissue there loses everything left of the
+    tool that the tool could hide, the tissue both cameras see included. Returns (H, W) float32 px, NaN where no reliable match. An empty mask
+    gives :func:`sgbm_disparity`.
     """
     left, right = _as_pair(left_rgb, right_rgb)
     tool = np.asarray(tool_mask) != 0
@@ -450,6 +485,8 @@ def masked_sgbm_disparity(
     left_m, right_m = _inpaint_pair(left, right, left_region, inpaint_right)
     disparity = _sgbm(left_m, right_m, p)
     disparity[left_region] = np.nan  # the margin beside the tool was inpainted: not measured
+    if p.respeckle and p.speckle_window_size > 0:  # the filter again, the inpainted region (its joints) out
+        disparity = drop_speckles(disparity, p.speckle_window_size, p.speckle_range)
     disparity[tool] = tool_disp[tool]
     if p.occlusion_check and inpaint_right.any():
         height, width = tool.shape
@@ -461,8 +498,22 @@ def masked_sgbm_disparity(
         hidden[inside] = inpaint_right[ys[inside], col[inside]]  # behind the tool, or inpainted: not measured
         disparity[ys[hidden], xs[hidden]] = np.nan
     if p.half_occluded_strip:
-        disparity[half_occluded(disparity, tool)] = np.nan
+        seen = disparity if tissue_hint_px is None else _with_hint(disparity, tool, tissue_hint_px)
+        disparity[half_occluded(seen, tool)] = np.nan
     return median_by_region(disparity, [tool, ~tool], p.median_px)
+
+
+def _with_hint(disparity: np.ndarray, tool: np.ndarray, hint: np.ndarray) -> np.ndarray:
+    """``disparity`` with its unmatched tissue pixels taken from ``hint`` where no strip of the row can lie:
+    left of the first tool pixel of the row by more than the tools' largest disparity (the widest strip's
+    edge). Nearer the tool the hint (a plain matcher's) carries the tool's disparity dragged into the strip."""
+    width = tool.shape[1]
+    reach = np.nanmax(np.where(tool, disparity, np.nan)) if np.isfinite(disparity[tool]).any() else np.nan
+    if not np.isfinite(reach):
+        return disparity
+    first = np.where(tool.any(axis=1), tool.argmax(axis=1), width)
+    usable = np.arange(width)[None, :] < (first - np.ceil(reach) - 1)[:, None]
+    return np.where(usable & ~np.isfinite(disparity) & ~tool, hint, disparity)
 
 
 def disparity_to_depth(

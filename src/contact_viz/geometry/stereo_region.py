@@ -12,8 +12,14 @@ frame. :func:`region_sgbm_disparity` therefore
    tile its disparity search range (the whole range: SGBMParams.resolve, from the calibration);
 3. matches the **region** (the tools and the background within ``region_px`` of them) with the
    mask-aware matcher (:func:`masked_sgbm_disparity`, which also leaves the half-occluded strip
-   without depth) in horizontal tiles of ``tile_rows_px`` rows, each searching only the coarse
-   disparities found in it +- ``range_margin_px``, within the whole range;
+   without depth, the coarse pass telling it the tissue's disparity where the tile's crop has none
+   of its own) in horizontal tiles of ``tile_rows_px`` rows, each searching only the coarse
+   disparities found in it +- ``range_margin_px``, within the whole range: from the farthest found
+   in it or up to ``range_context_px`` beside it along the rows (by default as far as the widest
+   strip reaches: the coarse pass may have no tissue inside the region, beside a wide half-occluded
+   strip or between two instruments, its own tool fattened over the rest), to the nearest found in
+   it, or to the whole range's nearest where the coarse pass matched too few of the tile's tool
+   pixels (``range_tool_seen_min``: a tool too thin for it);
 4. upsamples to the image: inside the region the fine disparity (no value crosses the tool's
    edge: a pixel whose tool/background class differs between the image and the matching
    resolution is NaN), outside it the coarse one; no depth on the half-occluded strips left of the
@@ -116,14 +122,20 @@ def _tiles(region: np.ndarray, rows_per_tile: int) -> list[tuple[int, int, int, 
     return out
 
 
-def _search_range(coarse_px: np.ndarray, p: SGBMParams) -> tuple[int, int]:
-    """(min_disparity, num_disparities) covering the finite ``coarse_px`` (matching px) +- the margin;
-    the full range of ``p`` when none is finite."""
+def _search_range(coarse_px: np.ndarray, p: SGBMParams, nearest: bool = False,
+                  beside_px: np.ndarray | None = None) -> tuple[int, int]:
+    """(min_disparity, num_disparities) covering the finite ``coarse_px`` (matching px) +- the margin,
+    from the smallest of them and of ``beside_px`` (the coarse disparities beside the region), with
+    ``nearest`` up to the full range's largest disparity; the full range of ``p`` when none is finite."""
     values = coarse_px[np.isfinite(coarse_px)]
     if values.size == 0:
         return p.min_disparity, p.num_disparities
-    lo = max(int(np.floor(values.min())) - p.range_margin_px, p.min_disparity)
-    hi = min(int(np.ceil(values.max())) + p.range_margin_px, p.min_disparity + p.num_disparities - 1)
+    farthest = values.min()
+    if beside_px is not None and np.isfinite(beside_px).any():
+        farthest = min(farthest, np.nanmin(beside_px))
+    top = p.min_disparity + p.num_disparities - 1
+    lo = max(int(np.floor(farthest)) - p.range_margin_px, p.min_disparity)
+    hi = top if nearest else min(int(np.ceil(values.max())) + p.range_margin_px, top)
     hi = max(hi, lo)
     return lo, -(-(hi - lo + 1) // SUBPIXEL) * SUBPIXEL
 
@@ -160,15 +172,20 @@ def region_sgbm_disparity(
     small_region = _shrink(region.astype(np.float32), n) > 0
     fine_small = np.full(small_tool.shape, np.nan, np.float32)
     height, width = small_tool.shape
+    reach = p1.min_disparity + p1.num_disparities if p.range_context_px is None else p.range_context_px
+    beside = cv2.dilate(small_region.astype(np.uint8), np.ones((1, 2 * reach + 1), np.uint8)).astype(bool)
     for y0, y1, x0, x1 in _tiles(small_region, p.tile_rows_px):
-        lo, num = _search_range(coarse_small[y0:y1, x0:x1][small_region[y0:y1, x0:x1]], p1)
+        tool_seen = np.isfinite(coarse_small[y0:y1][small_tool[y0:y1]])
+        nearest = tool_seen.size > 0 and tool_seen.mean() < p.range_tool_seen_min
+        lo, num = _search_range(coarse_small[y0:y1, x0:x1][small_region[y0:y1, x0:x1]], p1, nearest,
+                                coarse_small[y0:y1][beside[y0:y1]])
         cy0, cy1 = max(y0 - _CONTEXT_ROWS, 0), min(y1 + _CONTEXT_ROWS, height)
         # columns: the right view's match of the tile's first column lies up to lo + num left of it, and the
         # left-right check matches the right view's last matched column up to num right of the tile
         cx0, cx1 = max(x0 - lo - num - p.block_size, 0), min(x1 + num + p.block_size, width)
         tile = replace(p1, min_disparity=lo, num_disparities=num)
         got = masked_sgbm_disparity(small_l[cy0:cy1, cx0:cx1], small_r[cy0:cy1, cx0:cx1],
-                                    small_tool[cy0:cy1, cx0:cx1], tile)
+                                    small_tool[cy0:cy1, cx0:cx1], tile, coarse_small[cy0:cy1, cx0:cx1])
         fine_small[y0:y1, x0:x1] = got[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
     fine = _split_at_edge(_grow(fine_small, shape, n), tool, small_tool, n)
     out = _grow(coarse, shape, n)
