@@ -420,7 +420,6 @@ def masked_sgbm_disparity(
     right_rgb: np.ndarray,
     tool_mask: np.ndarray,
     params: SGBMParams = SGBMParams(),
-    tissue_hint_px: np.ndarray | None = None,
 ) -> np.ndarray:
     """Disparity of a rectified pair whose left tool mask is known, without foreground fattening.
 
@@ -455,12 +454,8 @@ def masked_sgbm_disparity(
        SGBM's isolated mismatches beside the tool are what the patch's minimum finds; on the
        study's training sessions the median brings the band within 3 mm from 91.0% to 92.4%.
 
-    ``tool_mask`` (H, W) bool or integer (nonzero = tool). ``tissue_hint_px`` (H, W) float px or None:
-    the scene's disparity from elsewhere (a tile's coarse pass), read by the strip test where this pair
-    matched no tissue left of the widest strip any tool of the row can cast (a crop's first columns,
-    whose matches lie outside it): without it a crop with no tissue there loses everything left of the
-    tool that the tool could hide, the tissue both cameras see included. Returns (H, W) float32 px, NaN where no reliable match. An empty mask
-    gives :func:`sgbm_disparity`.
+    ``tool_mask`` (H, W) bool or integer (nonzero = tool). Returns (H, W) float32 px, NaN where no
+    reliable match. An empty mask gives :func:`sgbm_disparity`.
     """
     left, right = _as_pair(left_rgb, right_rgb)
     tool = np.asarray(tool_mask) != 0
@@ -498,22 +493,8 @@ def masked_sgbm_disparity(
         hidden[inside] = inpaint_right[ys[inside], col[inside]]  # behind the tool, or inpainted: not measured
         disparity[ys[hidden], xs[hidden]] = np.nan
     if p.half_occluded_strip:
-        seen = disparity if tissue_hint_px is None else _with_hint(disparity, tool, tissue_hint_px)
-        disparity[half_occluded(seen, tool)] = np.nan
+        disparity[half_occluded(disparity, tool)] = np.nan
     return median_by_region(disparity, [tool, ~tool], p.median_px)
-
-
-def _with_hint(disparity: np.ndarray, tool: np.ndarray, hint: np.ndarray) -> np.ndarray:
-    """``disparity`` with its unmatched tissue pixels taken from ``hint`` where no strip of the row can lie:
-    left of the first tool pixel of the row by more than the tools' largest disparity (the widest strip's
-    edge). Nearer the tool the hint (a plain matcher's) carries the tool's disparity dragged into the strip."""
-    width = tool.shape[1]
-    reach = np.nanmax(np.where(tool, disparity, np.nan)) if np.isfinite(disparity[tool]).any() else np.nan
-    if not np.isfinite(reach):
-        return disparity
-    first = np.where(tool.any(axis=1), tool.argmax(axis=1), width)
-    usable = np.arange(width)[None, :] < (first - np.ceil(reach) - 1)[:, None]
-    return np.where(usable & ~np.isfinite(disparity) & ~tool, hint, disparity)
 
 
 def disparity_to_depth(

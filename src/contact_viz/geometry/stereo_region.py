@@ -12,8 +12,7 @@ frame. :func:`region_sgbm_disparity` therefore
    tile its disparity search range (the whole range: SGBMParams.resolve, from the calibration);
 3. matches the **region** (the tools and the background within ``region_px`` of them) with the
    mask-aware matcher (:func:`masked_sgbm_disparity`, which also leaves the half-occluded strip
-   without depth, the coarse pass telling it the tissue's disparity where the tile's crop has none
-   of its own) in horizontal tiles of ``tile_rows_px`` rows, each searching only the coarse
+   without depth) in horizontal tiles of ``tile_rows_px`` rows, each searching only the coarse
    disparities found in it +- ``range_margin_px``, within the whole range: from the farthest found
    in it or up to ``range_context_px`` beside it along the rows (by default as far as the widest
    strip reaches: the coarse pass may have no tissue inside the region, beside a wide half-occluded
@@ -185,7 +184,7 @@ def region_sgbm_disparity(
         cx0, cx1 = max(x0 - lo - num - p.block_size, 0), min(x1 + num + p.block_size, width)
         tile = replace(p1, min_disparity=lo, num_disparities=num)
         got = masked_sgbm_disparity(small_l[cy0:cy1, cx0:cx1], small_r[cy0:cy1, cx0:cx1],
-                                    small_tool[cy0:cy1, cx0:cx1], tile, coarse_small[cy0:cy1, cx0:cx1])
+                                    small_tool[cy0:cy1, cx0:cx1], tile)
         fine_small[y0:y1, x0:x1] = got[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
     fine = _split_at_edge(_grow(fine_small, shape, n), tool, small_tool, n)
     out = _grow(coarse, shape, n)
