@@ -263,10 +263,11 @@ class ProcessPool:
         finally:  # also when a second Ctrl-C interrupts the wait
             for worker in workers.values():
                 worker.kill()
-            if workers:
+            gone_by = time.monotonic() + EXIT_TIMEOUT_S  # one deadline for both waits: close() takes at most
+            if workers:  # STOP_GRACE_S + EXIT_TIMEOUT_S (it took up to 1 + 5 + 5 s)
                 wait_ready(list(workers), EXIT_TIMEOUT_S)
             if manager is not None:
-                manager.join(EXIT_TIMEOUT_S)  # it reaps the workers
+                manager.join(max(gone_by - time.monotonic(), 0.0))  # it reaps the workers
 
     def map(self, fn: Callable[[T], R], items: Iterable[T], *,
             progress: Callable[[int], None] | None = None) -> list[R]:
