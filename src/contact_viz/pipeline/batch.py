@@ -199,17 +199,8 @@ def run_batch(
     try:
         return _run_batch(source, out, options, engine, progress)
     except BaseException:
-        _sweep_staging(out)  # a worker stopped mid-write leaves its staging file; its process is gone by now
         _remove_new_empty_folders(out, before)
         raise
-
-
-def _sweep_staging(top: Path) -> None:
-    """Remove the staging files of processes that are gone, in ``top`` and every folder under it."""
-    from contact_viz.io.atomic import sweep_stale_in
-
-    for dirpath, _, _ in os.walk(top):
-        sweep_stale_in(dirpath)
 
 
 def _folders(top: Path) -> set[str]:
@@ -218,8 +209,12 @@ def _folders(top: Path) -> set[str]:
 
 
 def _remove_new_empty_folders(top: Path, before: set[str]) -> None:
-    """Remove the folders under ``top`` (``top`` included) that are empty and not in ``before``, deepest first."""
+    """In ``top`` and every folder under it, deepest first: remove the staging files of processes that are gone
+    (a worker stopped mid-write leaves its own), then the folder itself if it is empty and not in ``before``."""
+    from contact_viz.io.atomic import sweep_stale_in
+
     for dirpath, _, _ in os.walk(top, topdown=False):
+        sweep_stale_in(dirpath)
         if dirpath not in before:
             try:
                 os.rmdir(dirpath)  # only succeeds when empty
